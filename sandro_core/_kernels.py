@@ -6,8 +6,15 @@ Notation: `src` (N,3) source points q_i, `dst` (N,3) target points p_i, residual
 
 from __future__ import annotations
 
+import os
+
+import numba
 import numpy as np
 from numba import njit, prange
+
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    # The TBB that other wheels (open3d) bring is often too old for numba and only warns: prefer OpenMP.
+    numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
 
 @njit(cache=True)
@@ -116,62 +123,71 @@ def gnc_irls(src, dst, idx, R0, t0, alpha0, alpha_min, beta, epsilon, relative, 
     return R, t, gamma, it, ok
 
 
-@njit(cache=True)
-def _consistent(src, dst, i, j, thr):
-    dp = 0.0
-    dq = 0.0
-    for a in range(3):
-        e = dst[i, a] - dst[j, a]
-        f = src[i, a] - src[j, a]
-        dp += e * e
-        dq += f * f
-    return abs(np.sqrt(dp) - np.sqrt(dq)) <= thr
+@njit(cache=True, fastmath=True)
+def _length_gaps(srcT, dstT, i, out):
+    """out[j] = | ||p_i - p_j|| - ||q_i - q_j|| | for every j. srcT/dstT are (3, N) so the loop vectorises."""
+    s0, s1, s2 = srcT[0, i], srcT[1, i], srcT[2, i]
+    d0, d1, d2 = dstT[0, i], dstT[1, i], dstT[2, i]
+    for j in range(srcT.shape[1]):
+        a0 = srcT[0, j] - s0
+        a1 = srcT[1, j] - s1
+        a2 = srcT[2, j] - s2
+        b0 = dstT[0, j] - d0
+        b1 = dstT[1, j] - d1
+        b2 = dstT[2, j] - d2
+        out[j] = abs(np.sqrt(b0 * b0 + b1 * b1 + b2 * b2) - np.sqrt(a0 * a0 + a1 * a1 + a2 * a2))
 
 
-@njit(cache=True, parallel=True)
-def consistency_degrees(src, dst, seeds, thr):
-    """For each seed, how many other correspondences are length-consistent with it. O(M N) time, O(M) memory."""
-    n = src.shape[0]
+@njit(cache=True, fastmath=True)
+def _consistent(srcT, dstT, i, j, thr):
+    a = 0.0
+    b = 0.0
+    for k in range(3):
+        e = srcT[k, i] - srcT[k, j]
+        f = dstT[k, i] - dstT[k, j]
+        a += e * e
+        b += f * f
+    return abs(np.sqrt(b) - np.sqrt(a)) <= thr
+
+
+def consistency_degrees(srcT, dstT, seeds, thr):
+    """For each seed, how many other correspondences are length-consistent with it. O(M N) time."""
+    n = srcT.shape[1]
     deg = np.zeros(seeds.shape[0], dtype=np.int64)
     for k in prange(seeds.shape[0]):
-        i = seeds[k]
-        c = 0
-        for j in range(n):
-            if j != i and _consistent(src, dst, i, j, thr):
-                c += 1
-        deg[k] = c
+        gaps = np.empty(n)
+        _length_gaps(srcT, dstT, seeds[k], gaps)
+        deg[k] = np.sum(gaps <= thr) - 1
     return deg
 
 
 @njit(cache=True)
-def seed_clique(src, dst, seed, thr, max_set):
+def seed_clique(srcT, dstT, seed, thr, max_set):
     """A large clique of mutually consistent correspondences containing `seed`.
 
-    The seed's consistent set (strided down to `max_set` members) is peeled: the member with the
+    The seed's consistent set (its `max_set - 1` most consistent members) is peeled: the member with the
     fewest consistent partners inside the set goes first, until every remaining pair is consistent.
     Memory: O(N + max_set^2).
     """
-    n = src.shape[0]
-    members = np.empty(n, dtype=np.int64)
-    m = 0
-    for j in range(n):
-        if j != seed and _consistent(src, dst, seed, j, thr):
-            members[m] = j
-            m += 1
-    stride = 1 + (m - 1) // (max_set - 1) if m > max_set - 1 else 1
-    sel = np.empty(max_set, dtype=np.int64)
+    gaps = np.empty(srcT.shape[1])
+    _length_gaps(srcT, dstT, seed, gaps)
+    gaps[seed] = np.inf
+    members = np.flatnonzero(gaps <= thr)
+    if members.shape[0] > max_set - 1:  # keep the most consistent ones
+        members = members[np.argsort(gaps[members])[: max_set - 1]]
+    s = members.shape[0] + 1
+    sel = np.empty(s, dtype=np.int64)
     sel[0] = seed
-    s = 1
-    for k in range(0, m, stride):
-        if s >= max_set:
-            break
-        sel[s] = members[k]
-        s += 1
+    sel[1:] = members
     adj = np.zeros((s, s), dtype=np.bool_)
     deg = np.zeros(s, dtype=np.int64)
-    for a in range(s):
+    deg[0] = s - 1
+    for a in range(1, s):
+        adj[0, a] = True
+        adj[a, 0] = True
+        deg[a] += 1
         for b in range(a + 1, s):
-            if a == 0 or _consistent(src, dst, sel[a], sel[b], thr):
+            if _consistent(srcT, dstT, sel[a], sel[b], thr):
                 adj[a, b] = True
                 adj[b, a] = True
                 deg[a] += 1
@@ -201,21 +217,18 @@ def seed_clique(src, dst, seed, thr, max_set):
     return out
 
 
-@njit(cache=True, parallel=True)
-def clique_hypotheses(src, dst, seeds, thr, max_set, inlier_bound):
+def clique_hypotheses(src, dst, srcT, dstT, seeds, thr, max_set, inlier_bound):
     """One rigid hypothesis per seed: the Kabsch fit of its clique, scored by how many of all
-    correspondences it brings within `inlier_bound`. Returns (Rs, ts, scores, clique_sizes)."""
+    correspondences it brings within `inlier_bound`. Returns (Rs, ts, scores)."""
     m = seeds.shape[0]
     n = src.shape[0]
     Rs = np.zeros((m, 3, 3))
     ts = np.zeros((m, 3))
     scores = np.zeros(m, dtype=np.int64)
-    sizes = np.zeros(m, dtype=np.int64)
     all_idx = np.arange(n)
     bound2 = inlier_bound * inlier_bound
     for k in prange(m):
-        clique = seed_clique(src, dst, seeds[k], thr, max_set)
-        sizes[k] = clique.shape[0]
+        clique = seed_clique(srcT, dstT, seeds[k], thr, max_set)
         if clique.shape[0] < 3:
             continue
         R, t, ok = weighted_kabsch(src, dst, clique, np.ones(clique.shape[0]))
@@ -225,7 +238,15 @@ def clique_hypotheses(src, dst, seeds, thr, max_set, inlier_bound):
         ts[k] = t
         r2 = squared_residuals(src, dst, all_idx, R, t)
         scores[k] = np.sum(r2 <= bound2)
-    return Rs, ts, scores, sizes
+    return Rs, ts, scores
+
+
+# Threads pay off only on large problems; on small ones, and beside other busy threads (the OpenMP
+# barrier then waits for a descheduled thread), they cost up to 15x: both variants are compiled.
+consistency_degrees_serial = njit(cache=True)(consistency_degrees)
+consistency_degrees_parallel = njit(cache=True, parallel=True)(consistency_degrees)
+clique_hypotheses_serial = njit(cache=True)(clique_hypotheses)
+clique_hypotheses_parallel = njit(cache=True, parallel=True)(clique_hypotheses)
 
 
 @njit(cache=True)

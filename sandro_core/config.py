@@ -29,7 +29,14 @@ class PruningConfig(_Strict):
     )
     max_seeds: int = Field(1000, ge=1, description="correspondences whose consistency degree is counted")
     max_clique_seeds: int = Field(128, ge=1, description="highest-degree seeds whose cliques are searched")
-    max_set_size: int = Field(192, ge=8, description="cap on one seed's consistent set (subsampled above it)")
+    batch_size: int = Field(8, ge=1, description="seeds tried per batch, best first")
+    miss_probability: float = Field(
+        1e-2, gt=0.0, lt=1.0, description="stop trying seeds once an inlier seed is this unlikely to be missed"
+    )
+    max_set_size: int = Field(64, ge=8, description="cap on one seed's consistent set (subsampled above it)")
+    threads_above: int = Field(
+        20_000_000, ge=0, description="use all cores when seeds x correspondences reach this many pair checks"
+    )
     keep_ratio: float = Field(
         0.3, gt=0.0, le=1.0, description="keep hypotheses scoring at least this fraction of the best one"
     )

@@ -6,27 +6,24 @@ import numpy as np
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """(..., 3) vectors -> (..., 3, 3) cross-product matrices [v]x."""
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
+    """A 3-vector -> its cross-product matrix [v]x."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def registration_information(source: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """H = sum_i w_i J_i^T J_i for residuals r_i = p_i - T Exp(xi) q_i, xi = [rotation, translation].
 
     J_i = [R [q_i]x, -R]; R cancels in J_i^T J_i, so H depends on the source points and weights only:
-    H = sum_i w_i [[[q_i]x^T [q_i]x, [q_i]x], [-[q_i]x, I]].
+    H = sum_i w_i [[[q_i]x^T [q_i]x, [q_i]x], [-[q_i]x, I]], with [q]x^T [q]x = |q|^2 I - q q^T.
     """
-    w = weights[:, None, None]
-    Q = skew(source)
+    sw = weights.sum()
+    wq = weights @ source
+    wqq = (source * weights[:, None]).T @ source
     H = np.zeros((6, 6))
-    H[:3, :3] = np.sum(w * np.einsum("nji,njk->nik", Q, Q), axis=0)
-    H[:3, 3:] = np.sum(w * Q, axis=0)
+    H[:3, :3] = np.trace(wqq) * np.eye(3) - wqq
+    H[:3, 3:] = skew(wq)
     H[3:, :3] = -H[:3, 3:]
-    H[3:, 3:] = np.eye(3) * weights.sum()
+    H[3:, 3:] = sw * np.eye(3)
     return H
 
 

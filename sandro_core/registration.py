@@ -121,11 +121,28 @@ def consensus_candidates(
     """
     p = config.pruning
     n = len(src)
+    srcT, dstT = np.ascontiguousarray(src.T), np.ascontiguousarray(dst.T)
     seeds = correspondence_order(src, dst, config.seed)[: min(n, p.max_seeds)]
     thr = p.pair_threshold * noise_bound
-    degrees = K.consistency_degrees(src, dst, seeds, thr)
+    threaded = len(seeds) * n >= p.threads_above
+    degrees = (K.consistency_degrees_parallel if threaded else K.consistency_degrees_serial)(srcT, dstT, seeds, thr)
+    clique_hypotheses = K.clique_hypotheses_parallel if threaded else K.clique_hypotheses_serial
     ranked = seeds[np.argsort(-degrees, kind="stable")][: p.max_clique_seeds]
-    Rs, ts, scores, _ = K.clique_hypotheses(src, dst, ranked, thr, p.max_set_size, noise_bound)
+
+    # Seeds are tried best-first in batches until, were they drawn at random, an inlier seed would have
+    # been missed with probability below `miss_probability` given the best inlier ratio seen so far.
+    Rs, ts, scores = [], [], []
+    for start in range(0, len(ranked), p.batch_size):
+        R_b, t_b, s_b = clique_hypotheses(src, dst, srcT, dstT, ranked[start : start + p.batch_size],
+                                          thr, p.max_set_size, noise_bound)
+        Rs.append(R_b)
+        ts.append(t_b)
+        scores.append(s_b)
+        inlier_ratio = max(batch.max() for batch in scores) / n
+        tried = start + len(s_b)
+        if inlier_ratio >= 1.0 or tried * np.log1p(-inlier_ratio) < np.log(p.miss_probability):
+            break
+    Rs, ts, scores = np.concatenate(Rs), np.concatenate(ts), np.concatenate(scores)
     if scores.max() < 3:
         return np.arange(n), []
     keep = np.flatnonzero(scores >= p.keep_ratio * scores.max())

@@ -3,17 +3,27 @@
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from sandro_core.config import SplitStrategy
 
-_MASK = np.uint64(0xFFFFFFFFFFFFFFFF)
-
-
-def _splitmix64(x: np.ndarray) -> np.ndarray:
-    x = (x + np.uint64(0x9E3779B97F4A7C15)) & _MASK
-    x = ((x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)) & _MASK
-    x = ((x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)) & _MASK
+@njit(cache=True)
+def _splitmix64(x):
+    x = x + np.uint64(0x9E3779B97F4A7C15)
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
     return x ^ (x >> np.uint64(31))
+
+
+@njit(cache=True)
+def _coordinate_hash(bits, seed):
+    out = np.empty(bits.shape[0], dtype=np.uint64)
+    for i in range(bits.shape[0]):
+        h = _splitmix64(np.uint64(seed))
+        for c in range(bits.shape[1]):
+            h = _splitmix64(h ^ bits[i, c])
+        out[i] = h
+    return out
 
 
 def correspondence_order(source: np.ndarray, target: np.ndarray, seed: int) -> np.ndarray:
@@ -23,11 +33,7 @@ def correspondence_order(source: np.ndarray, target: np.ndarray, seed: int) -> n
     solver makes invariant to the order in which the correspondences are given.
     """
     bits = np.ascontiguousarray(np.hstack([source, target]), dtype=np.float64).view(np.uint64)
-    with np.errstate(over="ignore"):
-        h = _splitmix64(np.full(len(bits), np.uint64(seed) & _MASK, dtype=np.uint64))
-        for col in range(bits.shape[1]):
-            h = _splitmix64(h ^ bits[:, col])
-    return np.argsort(h, kind="stable")
+    return np.argsort(_coordinate_hash(bits, seed % 2**64), kind="stable")
 
 
 def split_indices(
