@@ -1,0 +1,47 @@
+"""`sandro-bench`: benchmarks of the project, one subcommand each (now: registration)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import NoReturn
+
+from pipelines import bench_registration
+from pipelines.bench_common import UsageError
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line on stderr and exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+SUBCOMMANDS = {"registration": bench_registration}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The `sandro-bench` parser, with one subparser per benchmark."""
+    parser = _Parser(prog="sandro-bench", description=__doc__)
+    subparsers = parser.add_subparsers(dest="command", required=True, metavar="BENCHMARK")
+    for name, module in SUBCOMMANDS.items():
+        doc = module.__doc__ or ""
+        subparser = subparsers.add_parser(
+            name, help=doc.splitlines()[0], description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
+        )
+        module.add_arguments(subparser)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of `sandro-bench`; returns the exit code (2 for bad arguments or input files)."""
+    args = build_parser().parse_args(argv)
+    try:
+        return SUBCOMMANDS[args.command].run(args)
+    except UsageError as error:
+        print(f"sandro-bench {args.command}: error: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,45 @@
+"""Pieces shared by the `sandro-bench` subcommands."""
+
+from __future__ import annotations
+
+import csv
+import time
+from pathlib import Path
+from typing import Iterable, Mapping
+
+import numpy as np
+
+
+class UsageError(Exception):
+    """Bad arguments or input files: reported in one line, exit code 2."""
+
+
+def default_out_dir(benchmark: str) -> Path:
+    """results/<benchmark>/<local time stamp>, relative to the working directory."""
+    return Path("results") / benchmark / time.strftime("%Y%m%d-%H%M%S")
+
+
+def parse_list(text: str, allowed: Iterable[str], what: str) -> list[str]:
+    """Split a comma list, keeping the order given; names outside `allowed` are a UsageError."""
+    allowed = list(allowed)
+    names = [name.strip() for name in text.split(",") if name.strip()]
+    unknown = [name for name in names if name not in allowed]
+    if unknown or not names:
+        raise UsageError(f"unknown or no {what} {','.join(unknown)!r}; choose from {','.join(allowed)}")
+    return list(dict.fromkeys(names))
+
+
+def pose_errors(T_estimate: np.ndarray, T_truth: np.ndarray) -> tuple[float, float]:
+    """Rotation error [deg] (the angle of R_est^T R_true) and translation error [m] (|t_est - t_true|)."""
+    R = T_estimate[:3, :3].T @ T_truth[:3, :3]
+    angle = np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+    return float(angle), float(np.linalg.norm(T_estimate[:3, 3] - T_truth[:3, 3]))
+
+
+def write_csv(path: Path, rows: Iterable[Mapping[str, object]], fields: list[str]) -> None:
+    """Write dict rows with the given columns (floats with up to 6 significant digits)."""
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=fields)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: f"{v:.6g}" if isinstance(v, float) else v for k, v in row.items()})
