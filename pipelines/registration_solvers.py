@@ -22,7 +22,17 @@ def sandro_paper(source: np.ndarray, target: np.ndarray, noise_bound: float) -> 
     return register(source, target, config).transformation
 
 
-SOLVERS: dict[str, Solver] = {"sandro": sandro, "sandro_paper": sandro_paper, **BASELINES}
+def sandro_paper_no_split(source: np.ndarray, target: np.ndarray, noise_bound: float) -> np.ndarray:
+    """Algorithm 1 of the paper with one split: what the splitting strategy adds."""
+    config = SandroConfig.paper()
+    config.noise_bound = noise_bound
+    config.num_splits = 1
+    return register(source, target, config).transformation
+
+
+SOLVERS: dict[str, Solver] = {
+    "sandro": sandro, "sandro_paper": sandro_paper, "sandro_paper_1split": sandro_paper_no_split, **BASELINES
+}
 
 
 def warm_up(solver: Solver) -> None:

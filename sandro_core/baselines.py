@@ -9,6 +9,7 @@ an inlier, and the 4x4 result maps source points into the target frame.
 from __future__ import annotations
 
 from contextlib import contextmanager
+from functools import partial
 from typing import Callable, Iterator
 
 import numpy as np
@@ -168,11 +169,13 @@ def gnc_tls(source: np.ndarray, target: np.ndarray, noise_bound: float) -> np.nd
     return T
 
 
-def kiss_matcher(source: np.ndarray, target: np.ndarray, noise_bound: float) -> np.ndarray:
+def kiss_matcher(
+    source: np.ndarray, target: np.ndarray, noise_bound: float, pruning_factor: float = 1.0
+) -> np.ndarray:
     """KISS-Matcher's `prune_and_solve`: ROBIN max-core pruning, then its GNC-TLS solver.
 
-    Both the pruning bound (pairwise length consistency) and the solver's inlier bound are set to
-    `noise_bound`; its voxel size only drives its own feature extraction, unused here.
+    The solver's inlier bound is `noise_bound`, the pruning bound (pairwise length consistency)
+    `pruning_factor * noise_bound`; its voxel size only drives its own feature extraction, unused here.
     Needs the optional package `kiss-matcher`.
     """
     source, target = _check(source, target, noise_bound)
@@ -180,7 +183,7 @@ def kiss_matcher(source: np.ndarray, target: np.ndarray, noise_bound: float) -> 
         raise ImportError("kiss_matcher is not installed: pip install kiss-matcher")
     # voxel_size only sets its feature radii (unused here), but must be >= 5 mm
     config = _kiss_matcher.KISSMatcherConfig(voxel_size=max(noise_bound, 0.01), enable_noise_bound_clamping=False)
-    config.robin_noise_bound = noise_bound
+    config.robin_noise_bound = pruning_factor * noise_bound
     config.solver_noise_bound = noise_bound
     solution = _kiss_matcher.KISSMatcher(config).prune_and_solve(
         source.astype(np.float32), target.astype(np.float32)
@@ -199,3 +202,5 @@ BASELINES: dict[str, Solver] = {
 }
 if _kiss_matcher is not None:
     BASELINES["kiss_matcher"] = kiss_matcher
+    # A tighter pruning bound suits the synthetic sweep better (20/20 instead of 4/20 at 95 % outliers).
+    BASELINES["kiss_matcher_0.5c"] = partial(kiss_matcher, pruning_factor=0.5)

@@ -30,7 +30,7 @@ def _check_viewpoint(viewpoint: np.ndarray | None, name: str) -> np.ndarray:
     return viewpoint
 
 
-def _fpfh_keypoints(points: np.ndarray, voxel_size: float, viewpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def fpfh_features(points: np.ndarray, voxel_size: float, viewpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Voxel-downsample `points` and compute FPFH descriptors.
 
     Args:
@@ -89,13 +89,17 @@ def match_fpfh(
 
     source_viewpoint = _check_viewpoint(source_viewpoint, "source_viewpoint")
     target_viewpoint = _check_viewpoint(target_viewpoint, "target_viewpoint")
-    source_kp, source_desc = _fpfh_keypoints(source_points, voxel_size, source_viewpoint)
-    target_kp, target_desc = _fpfh_keypoints(target_points, voxel_size, target_viewpoint)
-    if len(source_kp) == 0 or len(target_kp) == 0:
-        empty = np.empty((0, 3))
-        return empty, empty.copy()
+    source_kp, source_desc = fpfh_features(source_points, voxel_size, source_viewpoint)
+    target_kp, target_desc = fpfh_features(target_points, voxel_size, target_viewpoint)
+    source_idx, target_idx = mutual_matches(source_desc, target_desc)
+    return source_kp[source_idx], target_kp[target_idx]
 
-    _, source_to_target = cKDTree(target_desc).query(source_desc, k=1)
-    _, target_to_source = cKDTree(source_desc).query(target_desc, k=1)
-    mutual = np.flatnonzero(target_to_source[source_to_target] == np.arange(len(source_kp)))
-    return source_kp[mutual], target_kp[source_to_target[mutual]]
+
+def mutual_matches(source_desc: np.ndarray, target_desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i, j) where target descriptor j is the nearest to source descriptor i and vice versa."""
+    if len(source_desc) == 0 or len(target_desc) == 0:
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+    _, source_to_target = cKDTree(target_desc).query(source_desc, k=1, workers=-1)
+    _, target_to_source = cKDTree(source_desc).query(target_desc, k=1, workers=-1)
+    mutual = np.flatnonzero(target_to_source[source_to_target] == np.arange(len(source_desc)))
+    return mutual, source_to_target[mutual]

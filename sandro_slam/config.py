@@ -1,0 +1,87 @@
+"""Typed configuration of the SLAM plugin, with a YAML round trip (configs/default.yaml)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from kiss_icp.config.parser import KISSConfig
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from sandro_core.config import SandroConfig
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class KeyframeConfig(_Strict):
+    """When a new keyframe starts, and what its submap holds."""
+
+    distance: float = Field(10.0, gt=0.0, description="travel [m] that starts a new keyframe")
+    angle_deg: float = Field(30.0, gt=0.0, description="rotation [deg] that starts a new keyframe")
+    submap_voxel: float = Field(0.25, gt=0.0, description="voxel size [m] of the stored submap")
+    submap_radius: float = Field(40.0, gt=0.0, description="submap points farther than this [m] are dropped")
+
+
+class LoopDetectionConfig(_Strict):
+    """Which keyframe pairs are tried as loop closures."""
+
+    radius: float = Field(25.0, gt=0.0, description="candidates within this distance [m] of the new keyframe")
+    exclude_recent: float = Field(50.0, ge=0.0, description="skip keyframes fewer than this many metres back")
+    max_candidates: int = Field(3, ge=1, description="nearest candidates registered per keyframe")
+    use_map_closures: bool = Field(True, description="add MapClosures place-recognition candidates")
+    map_closures_min_inliers: int = Field(5, ge=1, description="ORB inliers a MapClosures candidate needs")
+
+
+class LoopRegistrationConfig(_Strict):
+    """Registration and verification of one candidate pair of submaps."""
+
+    fpfh_voxel: float = Field(1.0, gt=0.0, description="voxel [m] of the FPFH keypoints")
+    sandro: SandroConfig = Field(default_factory=lambda: SandroConfig(noise_bound=1.0))
+    icp_refine: bool = Field(True, description="point-to-plane ICP from the SANDRO transform")
+    icp_max_distance: float = Field(1.0, gt=0.0, description="ICP correspondence distance [m]")
+    min_inliers: int = Field(20, ge=3, description="SANDRO inliers a loop needs")
+    min_overlap: float = Field(0.3, ge=0.0, le=1.0, description="share of source points near the target after ICP")
+    overlap_distance: float = Field(0.5, gt=0.0, description="distance [m] that counts as overlapping")
+
+
+class GraphConfig(_Strict):
+    """The pose graph and its robust optimisation."""
+
+    mode: Literal["batch", "incremental"] = "batch"
+    robust: Literal["gnc_tls", "gnc_gm", "none"] = "gnc_tls"
+    inlier_probability: float = Field(
+        0.99, gt=0.0, lt=1.0, description="chi-square probability of a loop's whitened error being an inlier"
+    )
+    prior_sigma: float = Field(1e-3, gt=0.0, description="std of the first pose, rad and m")
+    odometry_translation_sigma_per_m: float = Field(0.01, gt=0.0, description="[m] per m travelled")
+    odometry_rotation_sigma_per_m: float = Field(0.001, gt=0.0, description="[rad] per m travelled")
+    odometry_sigma_floor: float = Field(0.01, gt=0.0, description="[m] and [rad], added to both")
+
+
+class SlamConfig(_Strict):
+    """Everything `OfflineSlam` and `LoopClosureModule` need; `odometry` is KISS-ICP's own config."""
+
+    odometry: KISSConfig = Field(default_factory=KISSConfig)
+    keyframes: KeyframeConfig = Field(default_factory=KeyframeConfig)
+    loops: LoopDetectionConfig = Field(default_factory=LoopDetectionConfig)
+    registration: LoopRegistrationConfig = Field(default_factory=LoopRegistrationConfig)
+    graph: GraphConfig = Field(default_factory=GraphConfig)
+
+    @model_validator(mode="after")
+    def _odometry_voxel(self) -> "SlamConfig":
+        # KISS-ICP's own default: a voxel of max_range / 100 (KISSConfig() alone leaves it None).
+        if self.odometry.mapping.voxel_size is None:
+            self.odometry.mapping.voxel_size = self.odometry.data.max_range / 100.0
+        return self
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "SlamConfig":
+        """Load from a YAML file; unknown keys are an error."""
+        data = yaml.safe_load(Path(path).read_text()) or {}
+        return cls.model_validate(data)
+
+    def to_yaml(self, path: str | Path) -> None:
+        Path(path).write_text(yaml.safe_dump(self.model_dump(), sort_keys=False))

@@ -1,0 +1,91 @@
+"""Cutting the odometry stream into keyframes, each with a submap in its own frame."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+
+from sandro_slam.config import KeyframeConfig
+
+
+@dataclass
+class Keyframe:
+    """A keyframe: its odometry pose, the scans it spans and its submap (points in the keyframe frame)."""
+
+    key: int
+    T_world_keyframe: np.ndarray  # odometry estimate, 4x4
+    first_frame: int  # index of the scan that started it
+    travelled: float  # odometry path length [m] at the keyframe
+    points: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
+
+
+def rotation_angle(R: np.ndarray) -> float:
+    """Angle [rad] of a 3x3 rotation matrix."""
+    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
+    """One point (the centroid) per occupied voxel of edge `voxel` [m]."""
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    return np.asarray(cloud.voxel_down_sample(voxel).points)
+
+
+class KeyframeBuilder:
+    """Starts a keyframe every `distance` metres or `angle_deg` degrees of odometry and accumulates the
+    scans that follow it, until the next keyframe, into its submap."""
+
+    def __init__(self, config: KeyframeConfig):
+        self.config = config
+        self._current: Keyframe | None = None
+        self._chunks: list[np.ndarray] = []
+        self._last_position: np.ndarray | None = None
+        self._travelled = 0.0
+        self._next_key = 0
+
+    @property
+    def travelled(self) -> float:
+        """Odometry path length so far [m]."""
+        return self._travelled
+
+    def add_scan(self, frame_index: int, T_world_scan: np.ndarray, points: np.ndarray) -> Keyframe | None:
+        """Add a deskewed scan (points in the scan frame) at its odometry pose.
+
+        Returns the keyframe this scan completed, if it started a new one; the scan itself then belongs
+        to the new keyframe.
+        """
+        if self._last_position is not None:
+            self._travelled += float(np.linalg.norm(T_world_scan[:3, 3] - self._last_position))
+        self._last_position = T_world_scan[:3, 3].copy()
+
+        completed = None
+        if self._current is None or self._is_new_keyframe(T_world_scan):
+            completed = self.flush()
+            self._current = Keyframe(self._next_key, T_world_scan.copy(), frame_index, self._travelled)
+            self._next_key += 1
+        T_keyframe_scan = np.linalg.inv(self._current.T_world_keyframe) @ T_world_scan
+        self._chunks.append(voxel_downsample(points, self.config.submap_voxel) @ T_keyframe_scan[:3, :3].T
+                            + T_keyframe_scan[:3, 3])
+        return completed
+
+    def flush(self) -> Keyframe | None:
+        """Close the current keyframe and return it (None if there is none)."""
+        keyframe = self._current
+        if keyframe is None:
+            return None
+        points = voxel_downsample(np.vstack(self._chunks), self.config.submap_voxel)
+        keyframe.points = points[np.linalg.norm(points, axis=1) <= self.config.submap_radius]
+        self._current = None
+        self._chunks = []
+        return keyframe
+
+    def current_key(self) -> int | None:
+        """Key of the keyframe the latest scan belongs to."""
+        return None if self._current is None else self._current.key
+
+    def _is_new_keyframe(self, T_world_scan: np.ndarray) -> bool:
+        T_keyframe_scan = np.linalg.inv(self._current.T_world_keyframe) @ T_world_scan
+        moved = self._travelled - self._current.travelled
+        turned = np.degrees(rotation_angle(T_keyframe_scan[:3, :3]))
+        return moved >= self.config.distance or turned >= self.config.angle_deg

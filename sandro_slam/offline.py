@@ -1,0 +1,132 @@
+"""OfflineSlam: KISS-ICP odometry, keyframes, loop closures and the final optimisation over a frame stream."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Iterable, Sequence
+
+import gtsam
+import numpy as np
+from kiss_icp.kiss_icp import KissICP
+
+from sandro_slam.config import SlamConfig
+from sandro_slam.keyframes import Keyframe, KeyframeBuilder
+from sandro_slam.module import LoopClosure, LoopClosureModule
+
+Frame = Sequence  # (timestamp [s], (N, 3) points[, (N,) per-point times [s] relative to the stamp])
+
+
+@dataclass
+class SlamResult:
+    """Poses are T_world_sensor (4x4) per processed frame; the world frame is the first scan's."""
+
+    timestamps: np.ndarray  # (F,) [s] of the processed frames
+    poses: np.ndarray  # (F, 4, 4) optimised: every scan moved with its keyframe
+    odometry_poses: np.ndarray  # (F, 4, 4) KISS-ICP alone
+    keyframes: list[Keyframe]
+    keyframe_of_frame: np.ndarray  # (F,) key of the keyframe each frame belongs to
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values  # initial keyframe poses (odometry)
+    keyframe_poses: dict[int, np.ndarray]  # optimised T_world_keyframe
+    loops: list[LoopClosure]  # verified loops; `weight` < 0.5 means the back end rejected them
+    rejected_loops: list[LoopClosure]
+    skipped_frames: list[int]  # input frames without any finite point
+    timings: dict[str, float] = field(default_factory=dict)  # seconds: odometry, loop_closure, optimization, total
+
+
+class OfflineSlam:
+    """Runs the whole pipeline over frames; `module` is the LoopClosureModule it drives, so that a caller can
+    add factors and re-optimise."""
+
+    def __init__(self, config: SlamConfig | None = None):
+        self.config = config or SlamConfig()
+        self.module = LoopClosureModule(self.config)
+
+    def run(self, frames: Iterable[Frame], progress: bool = False) -> SlamResult:
+        """Process (timestamp, points[, per-point times]) frames in order; points in the sensor frame."""
+        odometry = KissICP(self.config.odometry)
+        builder = KeyframeBuilder(self.config.keyframes)
+        stamps, odometry_poses, keys, skipped, keyframes = [], [], [], [], []
+        timings = {"odometry": 0.0, "loop_closure": 0.0, "optimization": 0.0}
+        start = time.perf_counter()
+        iterator = frames
+        if progress:
+            from tqdm import tqdm
+
+            iterator = tqdm(frames, unit="frame", desc="sandro-slam")
+        for index, frame in enumerate(iterator):
+            stamp, points, times = _unpack(frame, index)
+            finite = np.all(np.isfinite(points), axis=1)
+            if not finite.any():
+                skipped.append(index)
+                continue
+            points = points[finite]
+            times = times[finite] if len(times) else times
+            tic = time.perf_counter()
+            deskewed, _ = odometry.register_frame(points, times)
+            pose = odometry.last_pose.copy()
+            timings["odometry"] += time.perf_counter() - tic
+
+            tic = time.perf_counter()
+            completed = builder.add_scan(len(stamps), pose, deskewed)
+            if completed is not None:
+                self._close(completed, keyframes)
+            timings["loop_closure"] += time.perf_counter() - tic
+            stamps.append(stamp)
+            odometry_poses.append(pose)
+            keys.append(builder.current_key())
+        if not stamps:
+            raise ValueError("no frame with finite points: nothing to process")
+
+        tic = time.perf_counter()
+        last = builder.flush()
+        if last is not None:
+            self._close(last, keyframes)
+        timings["loop_closure"] += time.perf_counter() - tic
+
+        tic = time.perf_counter()
+        keyframe_poses = self.module.optimize()
+        timings["optimization"] = time.perf_counter() - tic
+        odometry_poses = np.asarray(odometry_poses)
+        keys = np.asarray(keys)
+        poses = np.empty_like(odometry_poses)
+        for keyframe in keyframes:
+            mine = keys == keyframe.key
+            correction = keyframe_poses[keyframe.key] @ np.linalg.inv(keyframe.T_world_keyframe)
+            poses[mine] = correction @ odometry_poses[mine]
+        timings["total"] = time.perf_counter() - start
+        return SlamResult(
+            timestamps=np.asarray(stamps, dtype=np.float64),
+            poses=poses,
+            odometry_poses=odometry_poses,
+            keyframes=keyframes,
+            keyframe_of_frame=keys,
+            graph=self.module.graph,
+            values=self.module.values,
+            keyframe_poses=keyframe_poses,
+            loops=list(self.module.loops),
+            rejected_loops=self.module.rejected_loops(),
+            skipped_frames=skipped,
+            timings=timings,
+        )
+
+    def _close(self, keyframe: Keyframe, keyframes: list[Keyframe]) -> None:
+        keyframes.append(keyframe)
+        self.module.add_keyframe(keyframe.key, keyframe.T_world_keyframe, keyframe.points)
+
+
+def _unpack(frame: Frame, index: int) -> tuple[float, np.ndarray, np.ndarray]:
+    if len(frame) not in (2, 3):
+        raise ValueError(f"frame {index}: expected (timestamp, points[, times]), got {len(frame)} items")
+    stamp = float(frame[0])
+    points = np.asarray(frame[1], dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"frame {index}: points must be an (N, 3) array, got shape {points.shape}")
+    if len(frame) == 3 and frame[2] is not None:
+        times = np.asarray(frame[2], dtype=np.float64).ravel()
+        if len(times) != len(points):
+            raise ValueError(f"frame {index}: {len(times)} per-point times for {len(points)} points")
+    else:
+        times = np.empty(0)  # KISS-ICP's convention for "no per-point times": no deskewing
+    return stamp, points, times

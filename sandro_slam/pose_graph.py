@@ -1,0 +1,149 @@
+"""The keyframe pose graph: prior, odometry and loop factors, optimised robustly (batch or ISAM2)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from sandro_slam.config import GraphConfig
+
+
+@dataclass
+class LoopFactor:
+    """A loop factor in the graph: BetweenFactorPose3(target_key, source_key, T_target_source)."""
+
+    factor_index: int
+    target_key: int
+    source_key: int
+    T_target_source: np.ndarray
+    covariance: np.ndarray  # 6x6, gtsam order [rotation, translation], right perturbation of T_target_source
+    weight: float = 1.0  # robust back end's weight after the last optimisation (1 = inlier)
+
+
+def odometry_covariance(distance: float, config: GraphConfig) -> np.ndarray:
+    """6x6 covariance of an odometry factor over `distance` metres: std growing linearly with travel."""
+    rot = config.odometry_rotation_sigma_per_m * distance + config.odometry_sigma_floor
+    trans = config.odometry_translation_sigma_per_m * distance + config.odometry_sigma_floor
+    return np.diag([rot**2] * 3 + [trans**2] * 3)
+
+
+def between_factor(key_a: int, key_b: int, T_a_b: np.ndarray, covariance: np.ndarray) -> gtsam.BetweenFactorPose3:
+    """BetweenFactorPose3 measuring T_a_b, with a covariance of its right (body-frame) perturbation."""
+    return gtsam.BetweenFactorPose3(key_a, key_b, gtsam.Pose3(T_a_b), gtsam.noiseModel.Gaussian.Covariance(covariance))
+
+
+class PoseGraph:
+    """Keyframe poses T_world_keyframe under a prior on the first, odometry chains and loop closures.
+
+    The prior and the odometry factors are known inliers; loops are judged by the robust back end
+    (`GraphConfig.robust`): graduated non-convexity (gtsam GncLMOptimizer, TLS or Geman-McClure)
+    decides which loops are outliers. In incremental mode ISAM2 keeps the estimate and holds the loops the
+    robust back end accepts.
+    """
+
+    def __init__(self, config: GraphConfig):
+        self.config = config
+        self.graph = gtsam.NonlinearFactorGraph()
+        self.values = gtsam.Values()  # initial values: the odometry chain
+        self.loops: list[LoopFactor] = []
+        self._known_inliers: list[int] = []
+        self._estimate = gtsam.Values()
+        self._isam = gtsam.ISAM2() if config.mode == "incremental" else None
+        self._isam_slots: dict[int, int] = {}  # graph factor index -> ISAM2 factor slot (accepted loops)
+
+    def add_pose(self, key: int, T_world_keyframe: np.ndarray, odometry_from: int | None = None,
+                 odometry_covariance_: np.ndarray | None = None) -> None:
+        """Add a keyframe at its odometry pose: the first gets the prior, the others an odometry factor
+        from `odometry_from` measuring the relative odometry pose, with `odometry_covariance_` (6x6)."""
+        if self.values.exists(key):
+            raise ValueError(f"keyframe {key} is already in the graph")
+        pose = gtsam.Pose3(T_world_keyframe)
+        if odometry_from is None:
+            if self.values.size() > 0:
+                raise ValueError("only the first keyframe may come without odometry")
+            factor = gtsam.PriorFactorPose3(key, pose, gtsam.noiseModel.Isotropic.Sigma(6, self.config.prior_sigma))
+            initial = pose
+        else:
+            previous = self.values.atPose3(odometry_from)
+            T_prev_key = previous.between(pose).matrix()
+            factor = between_factor(odometry_from, key, T_prev_key, odometry_covariance_)
+            # Start from the current estimate of the previous keyframe so new poses follow the corrections.
+            prev_estimate = self._estimate.atPose3(odometry_from) if self._estimate.exists(odometry_from) else previous
+            initial = prev_estimate.compose(gtsam.Pose3(T_prev_key))
+        self._known_inliers.append(self.graph.size())
+        self.graph.add(factor)
+        self.values.insert(key, pose)
+        self._estimate.insert(key, initial)
+        if self._isam is not None:
+            new_factors = gtsam.NonlinearFactorGraph()
+            new_factors.add(factor)
+            new_values = gtsam.Values()
+            new_values.insert(key, initial)
+            self._isam.update(new_factors, new_values)
+            self._estimate = self._isam.calculateEstimate()
+
+    def add_loop(self, target_key: int, source_key: int, T_target_source: np.ndarray,
+                 covariance: np.ndarray) -> LoopFactor:
+        """Add BetweenFactorPose3(target_key, source_key) measuring T_target_source with the registration's
+        covariance (gtsam order and frame, as `sandro_core` returns it)."""
+        for key in (target_key, source_key):
+            if not self.values.exists(key):
+                raise ValueError(f"loop refers to unknown keyframe {key}")
+        if covariance.shape != (6, 6) or not np.all(np.isfinite(covariance)):
+            raise ValueError("a loop needs a finite 6x6 covariance")
+        loop = LoopFactor(self.graph.size(), target_key, source_key, T_target_source, covariance)
+        self.graph.add(between_factor(target_key, source_key, T_target_source, covariance))
+        self.loops.append(loop)
+        return loop
+
+    def optimize(self) -> dict[int, np.ndarray]:
+        """Optimise; returns T_world_keyframe per key and updates each loop's weight."""
+        if self.values.size() == 0:
+            return {}
+        if self._isam is not None:
+            self._optimize_incremental()
+        else:
+            self._estimate = self._robust_optimize(self.values)
+        return {key: self._estimate.atPose3(key).matrix() for key in self._estimate.keys()}
+
+    def estimate(self, key: int) -> np.ndarray:
+        """The latest estimate of T_world_keyframe for `key`."""
+        return self._estimate.atPose3(key).matrix()
+
+    def rejected_loops(self) -> list[LoopFactor]:
+        """Loops the robust back end weighted below 0.5 in the last optimisation."""
+        return [loop for loop in self.loops if loop.weight < 0.5]
+
+    def _robust_optimize(self, initial: gtsam.Values) -> gtsam.Values:
+        robust = self.config.robust
+        if not self.loops or robust == "none":
+            return gtsam.LevenbergMarquardtOptimizer(self.graph, initial).optimize()
+        params = gtsam.GncLMParams()
+        params.setLossType(gtsam.GncLossType.TLS if robust == "gnc_tls" else gtsam.GncLossType.GM)
+        params.setKnownInliers(self._known_inliers)
+        optimizer = gtsam.GncLMOptimizer(self.graph, initial, params)
+        optimizer.setInlierCostThresholdsAtProbability(self.config.inlier_probability)
+        result = optimizer.optimize()
+        weights = np.asarray(optimizer.getWeights())
+        for loop in self.loops:
+            loop.weight = float(weights[loop.factor_index])
+        return result
+
+    def _optimize_incremental(self) -> None:
+        """GNC on the whole graph decides which loops hold; ISAM2 gets the newly accepted ones and drops
+        the newly rejected ones."""
+        self._robust_optimize(self._isam.calculateEstimate())
+        added = [loop for loop in self.loops if loop.weight >= 0.5 and loop.factor_index not in self._isam_slots]
+        removed = [self._isam_slots.pop(loop.factor_index) for loop in self.loops
+                   if loop.weight < 0.5 and loop.factor_index in self._isam_slots]
+        if added or removed:
+            new_factors = gtsam.NonlinearFactorGraph()
+            for loop in added:
+                new_factors.add(self.graph.at(loop.factor_index))
+            result = self._isam.update(new_factors, gtsam.Values(), removed)
+            for loop, slot in zip(added, result.getNewFactorsIndices()):
+                self._isam_slots[loop.factor_index] = slot
+        self._isam.update()
+        self._estimate = self._isam.calculateEstimate()

@@ -1,0 +1,121 @@
+"""sandro_slam.pose_graph: loop factor convention, robust rejection, batch vs incremental."""
+
+import gtsam
+import numpy as np
+import pytest
+
+from pipelines.synthetic import random_transform, transform_points
+from sandro_core import SandroConfig, register
+from sandro_slam.config import GraphConfig
+from sandro_slam.pose_graph import PoseGraph, between_factor, odometry_covariance
+
+
+def test_loop_factor_whitened_error_matches_registration_monte_carlo():
+    """A loop factor built from SANDRO's transform and covariance, evaluated at the true keyframe poses,
+    must have a whitened error of unit covariance: mean squared norm ~ 6."""
+    rng = np.random.default_rng(0)
+    T_world_target = random_transform(rng, 50.0)
+    T_world_source = random_transform(rng, 50.0)
+    T_target_source = np.linalg.inv(T_world_target) @ T_world_source
+    values = gtsam.Values()
+    values.insert(0, gtsam.Pose3(T_world_target))
+    values.insert(1, gtsam.Pose3(T_world_source))
+    cloud = rng.uniform([-20, -20, -2], [20, 20, 8], size=(400, 3)) + [30.0, 0.0, 0.0]  # off-centre
+    squared = []
+    for _ in range(200):
+        target = transform_points(T_target_source, cloud) + rng.normal(scale=0.05, size=cloud.shape)
+        outliers = rng.random(len(cloud)) < 0.3
+        target[outliers] = rng.uniform(-30, 60, size=(outliers.sum(), 3))
+        result = register(cloud, target, SandroConfig(noise_bound=0.25))
+        factor = between_factor(0, 1, result.transformation, result.covariance)
+        whitened = factor.whitenedError(values)
+        squared.append(whitened @ whitened)
+    assert 4.5 <= np.mean(squared) <= 7.5
+
+
+def _chain(n: int, rng: np.random.Generator, drift: float):
+    """Ground truth on a circle of keyframes and odometry with a small rotational drift per step."""
+    truth = []
+    for i in range(n):
+        angle = 2 * np.pi * i / n
+        T = np.eye(4)
+        T[:3, :3] = gtsam.Rot3.Yaw(angle + np.pi / 2).matrix()
+        T[:3, 3] = [30 * np.cos(angle), 30 * np.sin(angle), 0.0]
+        truth.append(T)
+    odometry = [truth[0]]
+    bias = gtsam.Pose3(gtsam.Rot3.Yaw(drift), gtsam.Point3(0.05, 0.0, 0.0)).matrix()
+    for i in range(1, n):
+        step = np.linalg.inv(truth[i - 1]) @ truth[i] @ bias
+        odometry.append(odometry[-1] @ step)
+    return truth, odometry
+
+
+def _build(mode: str, robust: str, n_false: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    n = 40
+    truth, odometry = _chain(n, rng, drift=0.01)
+    config = GraphConfig(mode=mode, robust=robust)
+    graph = PoseGraph(config)
+    loop_cov = np.diag([1e-4] * 3 + [1e-2] * 3)
+    true_pairs = [(i, n - 8 + i) for i in range(6)] + [(i, i + n // 2) for i in range(0, 5)]
+    false_pairs = [tuple(sorted(rng.choice(n, 2, replace=False))) for _ in range(n_false)]
+    loops_at = {}
+    for a, b in true_pairs:
+        loops_at.setdefault(max(a, b), []).append((a, b, np.linalg.inv(truth[a]) @ truth[b], True))
+    for a, b in false_pairs:
+        wrong = gtsam.Pose3(gtsam.Rot3.Yaw(rng.uniform(-0.3, 0.3)), gtsam.Point3(*rng.uniform(-3, 3, 3))).matrix()
+        loops_at.setdefault(max(a, b), []).append((a, b, wrong, False))
+    false_factors = set()
+    for i in range(n):
+        if i == 0:
+            graph.add_pose(0, odometry[0])
+        else:
+            distance = np.linalg.norm(odometry[i][:3, 3] - odometry[i - 1][:3, 3])
+            graph.add_pose(i, odometry[i], i - 1, odometry_covariance(distance, config))
+        for a, b, T, is_true in loops_at.get(i, []):
+            loop = graph.add_loop(a, b, T, loop_cov)
+            if not is_true:
+                false_factors.add(loop.factor_index)
+        if mode == "incremental" and loops_at.get(i):
+            graph.optimize()
+    poses = graph.optimize()
+    error = np.sqrt(np.mean([np.sum((poses[i][:3, 3] - truth[i][:3, 3]) ** 2) for i in range(n)]))
+    odometry_error = np.sqrt(np.mean([np.sum((odometry[i][:3, 3] - truth[i][:3, 3]) ** 2) for i in range(n)]))
+    return graph, poses, error, odometry_error, false_factors
+
+
+def test_true_loops_reduce_the_error():
+    _, _, error, odometry_error, _ = _build("batch", "gnc_tls", n_false=0)
+    assert error < 0.2 * odometry_error
+
+
+@pytest.mark.parametrize("robust", ["gnc_tls", "gnc_gm"])
+def test_false_loops_are_rejected(robust):
+    graph, _, error, _, false_factors = _build("batch", robust, n_false=6)
+    _, _, clean_error, _, _ = _build("batch", robust, n_false=0)
+    assert {loop.factor_index for loop in graph.rejected_loops()} == false_factors
+    assert error <= 1.1 * clean_error + 0.01
+
+
+def test_plain_least_squares_is_hurt_by_false_loops():
+    _, _, error, _, _ = _build("batch", "none", n_false=6)
+    _, _, clean_error, _, _ = _build("batch", "gnc_tls", n_false=0)
+    assert error > 3 * clean_error
+
+
+def test_incremental_and_batch_agree():
+    _, batch, _, _, _ = _build("batch", "gnc_tls", n_false=6)
+    graph, incremental, _, _, false_factors = _build("incremental", "gnc_tls", n_false=6)
+    assert {loop.factor_index for loop in graph.rejected_loops()} == false_factors
+    for key, T in batch.items():
+        np.testing.assert_allclose(incremental[key][:3, 3], T[:3, 3], atol=0.02)
+
+
+def test_bad_loop_input():
+    graph = PoseGraph(GraphConfig())
+    graph.add_pose(0, np.eye(4))
+    with pytest.raises(ValueError, match="unknown keyframe 5"):
+        graph.add_loop(0, 5, np.eye(4), np.eye(6))
+    graph.add_pose(1, np.eye(4), 0, np.eye(6))
+    with pytest.raises(ValueError, match="finite 6x6"):
+        graph.add_loop(0, 1, np.eye(4), np.full((6, 6), np.nan))
