@@ -43,8 +43,9 @@ class LoopRegistrationConfig(_Strict):
     icp_refine: bool = Field(True, description="point-to-plane ICP from the SANDRO transform")
     icp_max_distance: float = Field(1.0, gt=0.0, description="ICP correspondence distance [m]")
     min_inliers: int = Field(20, ge=3, description="SANDRO inliers a loop needs")
-    min_overlap: float = Field(0.3, ge=0.0, le=1.0, description="share of source points near the target after ICP")
-    overlap_distance: float = Field(0.5, gt=0.0, description="distance [m] that counts as overlapping")
+    min_overlap: float = Field(
+        0.3, ge=0.0, le=1.0, description="share of source keypoints within icp_max_distance of the target's"
+    )
 
 
 class GraphConfig(_Strict):

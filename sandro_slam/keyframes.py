@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import open3d as o3d
+from kiss_icp.voxelization import voxel_down_sample
 
 from sandro_slam.config import KeyframeConfig
 
@@ -27,9 +27,9 @@ def rotation_angle(R: np.ndarray) -> float:
 
 
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
-    """One point (the centroid) per occupied voxel of edge `voxel` [m]."""
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    return np.asarray(cloud.voxel_down_sample(voxel).points)
+    """One point per occupied voxel of edge `voxel` [m] (KISS-ICP's voxelisation: several times faster
+    than open3d's on scans)."""
+    return voxel_down_sample(points, voxel)
 
 
 class KeyframeBuilder:

@@ -7,7 +7,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
-from scipy.spatial import cKDTree
 
 from sandro_core import register
 from sandro_core.features import fpfh_features, mutual_matches
@@ -20,8 +19,7 @@ class SubmapDescription:
 
     keypoints: np.ndarray  # (K, 3) FPFH keypoints
     descriptors: np.ndarray  # (K, 33)
-    cloud: o3d.geometry.PointCloud  # submap points with normals, for ICP
-    tree: cKDTree  # over the submap points, for the overlap check
+    cloud: o3d.geometry.PointCloud  # the keypoints with their normals, for ICP and the overlap check
 
 
 @dataclass
@@ -31,23 +29,22 @@ class PairRegistration:
     T_target_source: np.ndarray
     covariance: np.ndarray  # 6x6 from SANDRO's final weights, gtsam order, right perturbation
     inliers: int
-    overlap: float  # share of source points within overlap_distance of the target after alignment
+    overlap: float  # share of source keypoints within icp_max_distance of the target's after alignment
     accepted: bool
     reason: str  # why it was rejected ("" if accepted)
     time_s: float
 
 
 def describe_submap(points: np.ndarray, config: LoopRegistrationConfig) -> SubmapDescription:
-    """FPFH keypoints and descriptors (normals oriented towards the keyframe origin) and an ICP-ready cloud."""
-    keypoints, descriptors = fpfh_features(points, config.fpfh_voxel, np.zeros(3))
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.0 * config.icp_max_distance, max_nn=20))
-    return SubmapDescription(keypoints, descriptors, cloud, cKDTree(points))
+    """FPFH keypoints, descriptors and normals (oriented towards the keyframe origin) of a submap."""
+    cloud, descriptors = fpfh_features(points, config.fpfh_voxel, np.zeros(3))
+    return SubmapDescription(np.asarray(cloud.points), descriptors, cloud)
 
 
 def register_submaps(target: SubmapDescription, source: SubmapDescription,
                      config: LoopRegistrationConfig) -> PairRegistration:
-    """Estimate T_target_source between two submaps and verify it."""
+    """Estimate T_target_source between two submaps and verify it: SANDRO on FPFH matches, then
+    point-to-plane ICP on the keypoints, whose fitness is the overlap."""
     start = time.perf_counter()
     source_idx, target_idx = mutual_matches(source.descriptors, target.descriptors)
     if len(source_idx) < max(3, config.min_inliers):
@@ -56,17 +53,15 @@ def register_submaps(target: SubmapDescription, source: SubmapDescription,
     if not result.valid or len(result.inliers) < config.min_inliers:
         return _rejected(f"{len(result.inliers)} SANDRO inliers", start, result.transformation)
     T = result.transformation
+    method = o3d.pipelines.registration.TransformationEstimationPointToPlane()
     if config.icp_refine:
-        T = o3d.pipelines.registration.registration_icp(
-            source.cloud, target.cloud, config.icp_max_distance, T,
-            o3d.pipelines.registration.TransformationEstimationPointToPlane(),
-        ).transformation
-    source_points = np.asarray(source.cloud.points)
-    distances, _ = target.tree.query(source_points @ T[:3, :3].T + T[:3, 3],
-                                     distance_upper_bound=config.overlap_distance)
-    overlap = float(np.mean(np.isfinite(distances)))
+        icp = o3d.pipelines.registration.registration_icp(source.cloud, target.cloud, config.icp_max_distance, T, method)
+        T, overlap = np.asarray(icp.transformation), icp.fitness
+    else:
+        overlap = o3d.pipelines.registration.evaluate_registration(
+            source.cloud, target.cloud, config.icp_max_distance, T).fitness
     accepted = overlap >= config.min_overlap
-    return PairRegistration(np.asarray(T), result.covariance, len(result.inliers), overlap, accepted,
+    return PairRegistration(T, result.covariance, len(result.inliers), overlap, accepted,
                             "" if accepted else f"overlap {overlap:.2f}", time.perf_counter() - start)
 
 

@@ -21,7 +21,8 @@ Frame = Sequence  # (timestamp [s], (N, 3) points[, (N,) per-point times [s] rel
 class SlamResult:
     """Poses are T_world_sensor (4x4) per processed frame; the world frame is the first scan's."""
 
-    timestamps: np.ndarray  # (F,) [s] of the processed frames
+    timestamps: np.ndarray  # (F,) [s] the time each pose refers to: stamp + latest per-point time (KISS-ICP
+    # deskews to the latest point), the stamp itself for frames without per-point times
     poses: np.ndarray  # (F, 4, 4) optimised: every scan moved with its keyframe
     odometry_poses: np.ndarray  # (F, 4, 4) KISS-ICP alone
     keyframes: list[Keyframe]
@@ -33,6 +34,15 @@ class SlamResult:
     rejected_loops: list[LoopClosure]
     skipped_frames: list[int]  # input frames without any finite point
     timings: dict[str, float] = field(default_factory=dict)  # seconds: odometry, loop_closure, optimization, total
+
+    def frame_poses(self, keyframe_poses: dict[int, np.ndarray]) -> np.ndarray:
+        """(F, 4, 4) T_world_sensor of every frame, each moved rigidly with its keyframe to `keyframe_poses`."""
+        poses = np.empty_like(self.odometry_poses)
+        for keyframe in self.keyframes:
+            mine = self.keyframe_of_frame == keyframe.key
+            correction = keyframe_poses[keyframe.key] @ np.linalg.inv(keyframe.T_world_keyframe)
+            poses[mine] = correction @ self.odometry_poses[mine]
+        return poses
 
 
 class OfflineSlam:
@@ -73,7 +83,7 @@ class OfflineSlam:
             if completed is not None:
                 self._close(completed, keyframes)
             timings["loop_closure"] += time.perf_counter() - tic
-            stamps.append(stamp)
+            stamps.append(stamp + (times.max() if len(times) and self.config.odometry.data.deskew else 0.0))
             odometry_poses.append(pose)
             keys.append(builder.current_key())
         if not stamps:
@@ -88,20 +98,13 @@ class OfflineSlam:
         tic = time.perf_counter()
         keyframe_poses = self.module.optimize()
         timings["optimization"] = time.perf_counter() - tic
-        odometry_poses = np.asarray(odometry_poses)
-        keys = np.asarray(keys)
-        poses = np.empty_like(odometry_poses)
-        for keyframe in keyframes:
-            mine = keys == keyframe.key
-            correction = keyframe_poses[keyframe.key] @ np.linalg.inv(keyframe.T_world_keyframe)
-            poses[mine] = correction @ odometry_poses[mine]
         timings["total"] = time.perf_counter() - start
-        return SlamResult(
+        result = SlamResult(
             timestamps=np.asarray(stamps, dtype=np.float64),
-            poses=poses,
-            odometry_poses=odometry_poses,
+            poses=np.empty((0, 4, 4)),
+            odometry_poses=np.asarray(odometry_poses),
             keyframes=keyframes,
-            keyframe_of_frame=keys,
+            keyframe_of_frame=np.asarray(keys),
             graph=self.module.graph,
             values=self.module.values,
             keyframe_poses=keyframe_poses,
@@ -110,6 +113,8 @@ class OfflineSlam:
             skipped_frames=skipped,
             timings=timings,
         )
+        result.poses = result.frame_poses(keyframe_poses)
+        return result
 
     def _close(self, keyframe: Keyframe, keyframes: list[Keyframe]) -> None:
         keyframes.append(keyframe)

@@ -34,6 +34,26 @@ def between_factor(key_a: int, key_b: int, T_a_b: np.ndarray, covariance: np.nda
     return gtsam.BetweenFactorPose3(key_a, key_b, gtsam.Pose3(T_a_b), gtsam.noiseModel.Gaussian.Covariance(covariance))
 
 
+def robust_optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, known_inliers: list[int],
+                    config: GraphConfig) -> tuple[gtsam.Values, np.ndarray]:
+    """Optimise `graph` with the configured robust back end; returns the values and a weight per factor
+    (1 for known inliers; below 0.5 means rejected).
+
+    gnc_tls / gnc_gm: gtsam's GncLMOptimizer, with `known_inliers` (prior and odometry factor indices)
+    never down-weighted and the inlier threshold at `inlier_probability` of the chi-square of each factor's
+    dimension. none: plain Levenberg-Marquardt, every weight 1.
+    """
+    if config.robust == "none":
+        return gtsam.LevenbergMarquardtOptimizer(graph, initial).optimize(), np.ones(graph.size())
+    params = gtsam.GncLMParams()
+    params.setLossType(gtsam.GncLossType.TLS if config.robust == "gnc_tls" else gtsam.GncLossType.GM)
+    params.setKnownInliers(known_inliers)
+    optimizer = gtsam.GncLMOptimizer(graph, initial, params)
+    optimizer.setInlierCostThresholdsAtProbability(config.inlier_probability)
+    result = optimizer.optimize()
+    return result, np.asarray(optimizer.getWeights())
+
+
 class PoseGraph:
     """Keyframe poses T_world_keyframe under a prior on the first, odometry chains and loop closures.
 
@@ -117,16 +137,9 @@ class PoseGraph:
         return [loop for loop in self.loops if loop.weight < 0.5]
 
     def _robust_optimize(self, initial: gtsam.Values) -> gtsam.Values:
-        robust = self.config.robust
-        if not self.loops or robust == "none":
+        if not self.loops:
             return gtsam.LevenbergMarquardtOptimizer(self.graph, initial).optimize()
-        params = gtsam.GncLMParams()
-        params.setLossType(gtsam.GncLossType.TLS if robust == "gnc_tls" else gtsam.GncLossType.GM)
-        params.setKnownInliers(self._known_inliers)
-        optimizer = gtsam.GncLMOptimizer(self.graph, initial, params)
-        optimizer.setInlierCostThresholdsAtProbability(self.config.inlier_probability)
-        result = optimizer.optimize()
-        weights = np.asarray(optimizer.getWeights())
+        result, weights = robust_optimize(self.graph, initial, self._known_inliers, self.config)
         for loop in self.loops:
             loop.weight = float(weights[loop.factor_index])
         return result
