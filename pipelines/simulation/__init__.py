@@ -1,0 +1,22 @@
+"""In-code ray-cast LiDAR sequences with ground truth, the test data of the SLAM benchmarks and tests.
+
+`simulate_sequence(seed=0)` gives about 800 sweeps (two 400 m laps at 1 m spacing) of a 32-beam spinning
+LiDAR driving through a city of repeated and mirror-symmetric blocks; see `sequence` for the conventions.
+"""
+
+from pipelines.simulation.sensor import SpinningLidar
+from pipelines.simulation.sequence import Frame, SimulatedSequence, simulate_sequence
+from pipelines.simulation.trajectory import Route, Trajectory
+from pipelines.simulation.world import CityLayout, World, build_city
+
+__all__ = [
+    "CityLayout",
+    "Frame",
+    "Route",
+    "SimulatedSequence",
+    "SpinningLidar",
+    "Trajectory",
+    "World",
+    "build_city",
+    "simulate_sequence",
+]

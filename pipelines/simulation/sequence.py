@@ -1,0 +1,127 @@
+"""A simulated LiDAR sequence with ground truth: the world, the trajectory and the sensor put together.
+
+Time convention (all times in seconds):
+- Frame i has `timestamp` = i * sweep_period (sequence time starts at 0) = the start of its sweep.
+- `times` are per point, relative to `timestamp`, in [0, sweep_period); sweeps follow each other without gap.
+- `points` are raw, as a real driver delivers them: each point in the sensor frame at its own time
+  `timestamp + times[k]`, so `poses_at(timestamp + times[k]) @ [points[k], 1]` lies on the world surface
+  (up to range noise). Nothing is motion-compensated.
+- `ground_truth[i]` is T_world_sensor at `timestamp[i]`; `poses_at(t)` gives it at any time.
+
+KISS-ICP 1.3 (`KissICP.register_frame(points, times)`, C++ `Preprocessor::Preprocess`) rescales each
+frame's timestamps to s in [0, 1] by their own min and max and moves point k by exp((s_k - 1) * log(delta)),
+delta being the motion between its last two pose estimates. So pass `frame.points, frame.times` unchanged
+(relative or absolute stamps work alike; an empty array turns deskewing off). The points then end up in
+the sensor frame at the frame's LATEST point, and the pose KISS-ICP returns is T_world_sensor at
+`timestamp + times.max()` (= timestamp + sweep_period * (1 - 1 / columns)), not at `timestamp`: compare it
+with `poses_at(timestamp + times.max())`. Its first frame is not deskewed (no motion estimate yet); the
+sequence therefore starts from rest.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipelines.simulation.sensor import SpinningLidar
+from pipelines.simulation.trajectory import Route, Trajectory, random_wobble
+from pipelines.simulation.world import CityLayout, World, build_city
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One LiDAR sweep (see the module docstring for the time and frame conventions)."""
+
+    index: int
+    timestamp: float  # sweep start [s]
+    points: np.ndarray  # (N, 3) float64 [m], each in the sensor frame at its own time
+    times: np.ndarray  # (N,) float64 [s] relative to `timestamp`, in [0, sweep_period)
+
+
+class SimulatedSequence:
+    """Frames generated on demand (bounded memory) and their ground truth.
+
+    Attributes:
+        world, trajectory, lidar: what the frames are simulated from.
+        timestamps: (M,) frame stamps [s].
+        ground_truth: (M, 4, 4) T_world_sensor at `timestamps`.
+    """
+
+    def __init__(
+        self,
+        world: World,
+        trajectory: Trajectory,
+        lidar: SpinningLidar,
+        num_frames: int,
+        noise_sigma: float,
+        seed: int,
+    ) -> None:
+        self.world = world
+        self.trajectory = trajectory
+        self.lidar = lidar
+        self.noise_sigma = noise_sigma
+        self.seed = seed
+        self.timestamps = np.arange(num_frames) * lidar.sweep_period
+        self.ground_truth = trajectory.poses(self.timestamps)
+        self._scene = world.raycasting_scene()
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def poses_at(self, times: np.ndarray | float) -> np.ndarray:
+        """Ground truth T_world_sensor (M, 4, 4) at sequence times (M,) [s]."""
+        return self.trajectory.poses(times)
+
+    def frame(self, index: int) -> Frame:
+        """Frame `index`; the same for a given seed whatever the order frames are asked for in."""
+        if not 0 <= index < len(self):
+            raise IndexError(f"frame {index} out of range [0, {len(self)})")
+        timestamp = float(self.timestamps[index])
+        rng = np.random.default_rng([self.seed, 2, index])  # streams: city seed, wobble [seed, 1]
+        poses = self.poses_at(timestamp + self.lidar.column_times)
+        points, times = self.lidar.scan(self._scene, poses, self.noise_sigma, rng)
+        return Frame(index=index, timestamp=timestamp, points=points, times=times)
+
+    def frames(self) -> Iterator[Frame]:
+        """All frames in order, one at a time."""
+        for index in range(len(self)):
+            yield self.frame(index)
+
+
+def simulate_sequence(
+    seed: int = 0,
+    laps: int = 2,
+    frames: int | None = None,
+    spacing: float = 1.0,
+    noise_sigma: float = 0.02,
+    lane_offset: float = 1.5,
+    wobble_deg: float = 0.3,
+    layout: CityLayout = CityLayout(),
+    lidar: SpinningLidar = SpinningLidar(),
+) -> SimulatedSequence:
+    """A drive of `laps` laps (about 400 m each) around the two central blocks of a seeded city.
+
+    Args:
+        seed: seeds the city, the wobble and the range noise; the same seed gives identical frames.
+        laps: number of laps; from lap 2 on the sensor drives `lane_offset` [m] to the left.
+        frames: at most this many frames (None: all laps).
+        spacing: distance between consecutive frame stamps along the route at cruise speed [m]; cruise
+            speed = spacing / lidar.sweep_period (10 m/s at the defaults), reached from rest in 2 s.
+        noise_sigma: range noise standard deviation [m].
+        wobble_deg: roll and pitch wobble amplitude [deg] (0: none).
+        layout: street grid of the city.
+        lidar: the sensor model.
+    """
+    world = build_city(seed, layout)
+    trajectory = Trajectory(
+        route=Route(*layout.loop),
+        speed=spacing / lidar.sweep_period,
+        lane_offset=lane_offset,
+        wobble=random_wobble(np.random.default_rng([seed, 1]), wobble_deg),
+    )
+    num_frames = int(trajectory.time_at(laps * trajectory.route.length) / lidar.sweep_period)
+    if frames is not None:
+        num_frames = min(num_frames, frames)
+    return SimulatedSequence(world, trajectory, lidar, num_frames, noise_sigma, seed)
