@@ -129,18 +129,22 @@ def consensus_candidates(
     clique_hypotheses = K.clique_hypotheses_parallel if threaded else K.clique_hypotheses_serial
     ranked = seeds[np.argsort(-degrees, kind="stable")][: p.max_clique_seeds]
 
-    # Seeds are tried best-first in batches until, were they drawn at random, an inlier seed would have
-    # been missed with probability below `miss_probability` given the best inlier ratio seen so far.
+    # Seeds are tried best-first in batches. The share of the seeds tried so far that the best hypothesis
+    # explains estimates how often a ranked seed belongs to the largest structure; the search stops once
+    # missing every seed of a structure at least that common has probability below `miss_probability`.
     Rs, ts, scores = [], [], []
+    bound2 = noise_bound**2
     for start in range(0, len(ranked), p.batch_size):
         R_b, t_b, s_b = clique_hypotheses(src, dst, srcT, dstT, ranked[start : start + p.batch_size],
                                           thr, p.max_set_size, noise_bound)
         Rs.append(R_b)
         ts.append(t_b)
         scores.append(s_b)
-        inlier_ratio = max(batch.max() for batch in scores) / n
-        tried = start + len(s_b)
-        if inlier_ratio >= 1.0 or tried * np.log1p(-inlier_ratio) < np.log(p.miss_probability):
+        best = int(np.argmax(np.concatenate(scores)))
+        tried = ranked[: start + len(s_b)]
+        R_best, t_best = np.concatenate(Rs)[best], np.concatenate(ts)[best]
+        share = np.mean(K.squared_residuals(src, dst, tried, R_best, t_best) <= bound2)
+        if share >= 1.0 or len(tried) * np.log1p(-share) < np.log(p.miss_probability):
             break
     Rs, ts, scores = np.concatenate(Rs), np.concatenate(ts), np.concatenate(scores)
     if scores.max() < 3:
