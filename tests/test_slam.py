@@ -1,0 +1,113 @@
+"""sandro_slam: loops on a simulated drive, false loops, batch vs incremental, bad input."""
+
+import numpy as np
+import pytest
+
+from pipelines.simulation import simulate_sequence
+from pipelines.synthetic import transform_points
+from pipelines.trajectory_metrics import ate
+from sandro_slam import LoopClosureModule, OfflineSlam, SlamConfig
+
+KEYFRAME_STEP = 40  # frames (40 m) between the keyframes of the drive
+
+
+@pytest.fixture(scope="module")
+def drive():
+    """Keyframes of the two-lap simulated drive: deskewed scans, true poses and drifting odometry poses."""
+    sequence = simulate_sequence(seed=0)
+    indices = np.arange(0, len(sequence), KEYFRAME_STEP)
+    truth, scans = [], []
+    for i in indices:
+        frame = sequence.frame(int(i))
+        per_point = sequence.poses_at(frame.timestamp + frame.times)
+        world = np.einsum("nij,nj->ni", per_point[:, :3, :3], frame.points) + per_point[:, :3, 3]
+        T = sequence.poses_at(frame.timestamp + frame.times.max())[0]
+        truth.append(T)
+        scans.append(transform_points(np.linalg.inv(T), world))
+    # Odometry that turns 0.2 degree too far per keyframe: about 8 m of drift at the end of lap 1.
+    drift = np.eye(4)
+    drift[:2, :2] = [[np.cos(0.0035), -np.sin(0.0035)], [np.sin(0.0035), np.cos(0.0035)]]
+    odometry = [truth[0]]
+    for a, b in zip(truth[:-1], truth[1:]):
+        odometry.append(odometry[-1] @ np.linalg.inv(a) @ b @ drift)
+    return np.array(truth), np.array(odometry), scans
+
+
+def _run_module(drive, mode: str) -> tuple[LoopClosureModule, np.ndarray]:
+    truth, odometry, scans = drive
+    config = SlamConfig()
+    config.graph.mode = mode
+    config.loops.use_map_closures = False
+    module = LoopClosureModule(config)
+    for key, (T, points) in enumerate(zip(odometry, scans)):
+        module.add_keyframe(key, T, points)
+    poses = module.optimize()
+    return module, np.array([poses[k] for k in range(len(scans))])
+
+
+@pytest.fixture(scope="module")
+def batch_run(drive):
+    return _run_module(drive, "batch")
+
+
+def test_loops_are_found_and_the_error_drops(drive, batch_run):
+    truth, odometry, _ = drive
+    module, poses = batch_run
+    assert len(module.loops) >= 3
+    assert all(loop.found_by == "radius" for loop in module.loops)
+    assert ate(poses, truth) < 0.3 * ate(odometry, truth)
+
+
+def test_loop_measurements_match_the_truth(drive, batch_run):
+    truth, _, _ = drive
+    module, _ = batch_run
+    for loop in module.loops:
+        if loop.weight < 0.5:
+            continue
+        T_true = np.linalg.inv(truth[loop.target_key]) @ truth[loop.source_key]
+        assert np.linalg.norm(loop.T_target_source[:3, 3] - T_true[:3, 3]) < 0.5
+
+
+def test_false_loops_are_rejected(drive):
+    truth, odometry, scans = drive
+    module, clean = _run_module(drive, "batch")
+    rng = np.random.default_rng(0)
+    covariance = np.median([loop.covariance for loop in module.loops], axis=0)
+    false = []
+    for _ in range(max(2, len(module.loops) // 3)):
+        a, b = rng.choice(len(scans), size=2, replace=False)
+        wrong = np.eye(4)
+        wrong[:3, 3] = rng.uniform(-4, 4, 3)
+        false.append(module.pose_graph.add_loop(int(a), int(b), wrong, covariance))
+    poses = module.optimize()
+    assert all(factor.weight < 0.5 for factor in false)
+    corrupted = np.array([poses[k] for k in range(len(scans))])
+    assert ate(corrupted, truth) <= 1.1 * ate(clean, truth) + 0.02
+
+
+def test_incremental_and_batch_agree(drive, batch_run):
+    _, batch = batch_run
+    _, incremental = _run_module(drive, "incremental")
+    np.testing.assert_allclose(incremental[:, :3, 3], batch[:, :3, 3], atol=0.05)
+
+
+def test_offline_slam_handles_bad_frames():
+    sequence = simulate_sequence(seed=1, frames=3)
+    frames = [(f.timestamp, f.points, f.times) for f in sequence.frames()]
+    with_nan = frames[1][1].copy()
+    with_nan[::7] = np.nan
+    frames = [frames[0], (0.05, np.empty((0, 3))), (frames[1][0], with_nan, frames[1][2]), frames[2]]
+    result = OfflineSlam().run(frames)
+    assert result.skipped_frames == [1]
+    assert len(result.poses) == 3 and np.all(np.isfinite(result.poses))
+    assert result.loops == []
+
+
+def test_offline_slam_single_frame_and_no_points():
+    frame = simulate_sequence(seed=1, frames=1).frame(0)
+    result = OfflineSlam().run([(frame.timestamp, frame.points)])
+    np.testing.assert_allclose(result.poses[0], np.eye(4))
+    with pytest.raises(ValueError, match="no frame with finite points"):
+        OfflineSlam().run([(0.0, np.full((5, 3), np.nan))])
+    with pytest.raises(ValueError, match=r"frame 0: points must be an \(N, 3\) array"):
+        OfflineSlam().run([(0.0, np.zeros((5, 2)))])
