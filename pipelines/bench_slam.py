@@ -23,6 +23,7 @@ import numpy as np
 from pipelines.bench_common import UsageError, default_out_dir, write_csv
 from pipelines.kiss_slam_baseline import kiss_slam_available, run_kiss_slam
 from pipelines.simulation import simulate_sequence
+from pipelines.trajectory_io import write_tum
 from pipelines.trajectory_metrics import ate
 from sandro_slam import OfflineSlam, SlamConfig, SlamResult
 from sandro_slam.config import GraphConfig
@@ -79,6 +80,8 @@ def run(args: argparse.Namespace) -> int:
         trajectories["KISS-SLAM"] = kiss_poses
     metrics.update(false_loop_experiment(result, truth, config.graph, args.false_loop_ratio, args.seed))
 
+    for name, poses in trajectories.items():
+        write_tum(out / f"{name.replace(' ', '_')}.tum", result.timestamps, poses)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     write_csv(out / "metrics.csv", [{"metric": k, "value": v} for k, v in metrics.items() if np.isscalar(v)],
               ["metric", "value"])

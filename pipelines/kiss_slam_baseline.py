@@ -36,7 +36,7 @@ def run_kiss_slam(frames: Iterable, max_range: float) -> tuple[np.ndarray, float
     config.odometry.mapping.voxel_size = max_range / 100.0  # what KISS-SLAM's own config loader sets
     slam = KissSLAM(config)
     start = time.perf_counter()
-    with _native_stdout_silenced():  # its g2o back end prints every iteration
+    with _native_output_silenced():  # its g2o back end prints every iteration
         for _, points, times in frames:
             slam.process_scan(points, times)
         slam.generate_new_node()
@@ -46,14 +46,18 @@ def run_kiss_slam(frames: Iterable, max_range: float) -> tuple[np.ndarray, float
 
 
 @contextmanager
-def _native_stdout_silenced() -> Iterator[None]:
+def _native_output_silenced() -> Iterator[None]:
+    """Send what native code writes to stdout and stderr to /dev/null."""
     sys.stdout.flush()
-    saved = os.dup(1)
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
     with open(os.devnull, "w") as null:
         os.dup2(null.fileno(), 1)
+        os.dup2(null.fileno(), 2)
         try:
             yield
         finally:
             ctypes.CDLL(None).fflush(None)  # what the C++ side buffered goes to /dev/null too
-            os.dup2(saved, 1)
-            os.close(saved)
+            for fd, copy in zip((1, 2), saved):
+                os.dup2(copy, fd)
+                os.close(copy)
