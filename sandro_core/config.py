@@ -11,11 +11,26 @@ from pydantic import BaseModel, ConfigDict, Field
 SplitStrategy = Literal["contiguous", "random", "spatial"]
 
 
-class _Strict(BaseModel):
+class StrictModel(BaseModel):
+    """A configuration section: unknown keys and invalid values are errors, also on assignment."""
+
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
-class PruningConfig(_Strict):
+class YamlConfig(StrictModel):
+    """A top-level configuration that loads from and dumps to YAML."""
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "YamlConfig":
+        """Load from a YAML file; unknown keys are an error."""
+        data = yaml.safe_load(Path(path).read_text()) or {}
+        return cls.model_validate(data)
+
+    def to_yaml(self, path: str | Path) -> None:
+        Path(path).write_text(yaml.safe_dump(self.model_dump(), sort_keys=False))
+
+
+class PruningConfig(StrictModel):
     """Consensus stage: pairwise length consistency between correspondences.
 
     Two correspondences (p_i, q_i) and (p_j, q_j) are consistent when
@@ -42,7 +57,7 @@ class PruningConfig(_Strict):
     )
 
 
-class SandroConfig(_Strict):
+class SandroConfig(YamlConfig):
     """Parameters of `sandro_core.register`.
 
     Lengths are in the units of the input points (metres for LiDAR); `alpha` is a squared length.
@@ -87,12 +102,3 @@ class SandroConfig(_Strict):
             refine=False,
             pruning=PruningConfig(enabled=False),
         )
-
-    @classmethod
-    def from_yaml(cls, path: str | Path) -> "SandroConfig":
-        """Load from a YAML file; unknown keys are an error."""
-        data = yaml.safe_load(Path(path).read_text()) or {}
-        return cls.model_validate(data)
-
-    def to_yaml(self, path: str | Path) -> None:
-        Path(path).write_text(yaml.safe_dump(self.model_dump(), sort_keys=False))

@@ -2,21 +2,15 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Literal
 
-import yaml
 from kiss_icp.config.parser import KISSConfig
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
-from sandro_core.config import SandroConfig
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+from sandro_core.config import SandroConfig, StrictModel, YamlConfig
 
 
-class KeyframeConfig(_Strict):
+class KeyframeConfig(StrictModel):
     """When a new keyframe starts, and what its submap holds."""
 
     distance: float = Field(10.0, gt=0.0, description="travel [m] that starts a new keyframe")
@@ -25,7 +19,7 @@ class KeyframeConfig(_Strict):
     submap_radius: float = Field(40.0, gt=0.0, description="submap points farther than this [m] are dropped")
 
 
-class LoopDetectionConfig(_Strict):
+class LoopDetectionConfig(StrictModel):
     """Which keyframe pairs are tried as loop closures."""
 
     radius: float = Field(25.0, gt=0.0, description="candidates within this distance [m] of the new keyframe")
@@ -35,7 +29,7 @@ class LoopDetectionConfig(_Strict):
     map_closures_min_inliers: int = Field(5, ge=1, description="ORB inliers a MapClosures candidate needs")
 
 
-class LoopRegistrationConfig(_Strict):
+class LoopRegistrationConfig(StrictModel):
     """Registration and verification of one candidate pair of submaps."""
 
     fpfh_voxel: float = Field(1.0, gt=0.0, description="voxel [m] of the FPFH keypoints")
@@ -48,7 +42,7 @@ class LoopRegistrationConfig(_Strict):
     )
 
 
-class GraphConfig(_Strict):
+class GraphConfig(StrictModel):
     """The pose graph and its robust optimisation."""
 
     mode: Literal["batch", "incremental"] = "batch"
@@ -62,7 +56,7 @@ class GraphConfig(_Strict):
     odometry_sigma_floor: float = Field(0.01, gt=0.0, description="[m] and [rad], added to both")
 
 
-class SlamConfig(_Strict):
+class SlamConfig(YamlConfig):
     """Everything `OfflineSlam` and `LoopClosureModule` need; `odometry` is KISS-ICP's own config."""
 
     odometry: KISSConfig = Field(default_factory=KISSConfig)
@@ -77,12 +71,3 @@ class SlamConfig(_Strict):
         if self.odometry.mapping.voxel_size is None:
             self.odometry.mapping.voxel_size = self.odometry.data.max_range / 100.0
         return self
-
-    @classmethod
-    def from_yaml(cls, path: str | Path) -> "SlamConfig":
-        """Load from a YAML file; unknown keys are an error."""
-        data = yaml.safe_load(Path(path).read_text()) or {}
-        return cls.model_validate(data)
-
-    def to_yaml(self, path: str | Path) -> None:
-        Path(path).write_text(yaml.safe_dump(self.model_dump(), sort_keys=False))

@@ -30,3 +30,14 @@ def test_unknown_key_is_an_error(tmp_path):
 def test_out_of_range_is_an_error():
     with pytest.raises(pydantic.ValidationError):
         SandroConfig(beta=1.5)
+
+
+def test_slam_config_round_trip(tmp_path):
+    from sandro_slam import SlamConfig
+
+    assert SlamConfig.from_yaml(CONFIGS / "default.yaml") == SlamConfig()
+    config = SlamConfig()
+    config.graph.mode = "incremental"
+    config.registration.sandro.num_splits = 2
+    config.to_yaml(tmp_path / "slam.yaml")
+    assert SlamConfig.from_yaml(tmp_path / "slam.yaml") == config
