@@ -71,9 +71,10 @@ def _pairs_then_all(real: dict[Key, Row]) -> list[str]:
 
 
 def _median_time(rows: Sequence[Row], part: str, solver: str, case: str) -> float:
-    """Median time [s] of one solver on one case, over every outlier kind."""
-    key = (part, solver, case)
-    return float(np.median([float(r["time_s"]) for r in rows if (r["part"], r["solver"], r["case"]) == key]))
+    """Median time [s] of one solver on one case ("all": every case), over every outlier kind."""
+    times = [float(r["time_s"]) for r in rows
+             if r["part"] == part and r["solver"] == solver and case in ("all", r["case"])]
+    return float(np.median(times))
 
 
 def _table(title: str, solvers: list[str], columns: dict[str, str], cell: Callable[[str, str], str]) -> str:
@@ -101,8 +102,9 @@ def _synthetic_tables(rows: Sequence[Row], summary: Sequence[Row], solvers: list
     for kind in _unique(kind for _, _, kind in synthetic):
         title = f"synthetic, {kind} outliers: success [%] at 10 deg/1 m (5 deg/0.6 m), by outlier rate"
         text += _table(title, solvers, rates, lambda s, rate: _success(synthetic.get((s, rate, kind))))
-    title = "synthetic: median solver time [ms] (both outlier kinds), by outlier rate"
-    return text + _table(title, solvers, rates, lambda s, r: f"{1000 * _median_time(rows, 'synthetic', s, r):.1f}")
+    title = "synthetic: median solver time [ms] (both outlier kinds), by outlier rate and over the sweep"
+    columns = {**rates, "all": "all"}
+    return text + _table(title, solvers, columns, lambda s, r: f"{1000 * _median_time(rows, 'synthetic', s, r):.1f}")
 
 
 def _real_tables(summary: Sequence[Row], solvers: list[str], voxel_size: float, noise_bound: float) -> str:
