@@ -16,7 +16,7 @@ class KeyframeConfig(StrictModel):
     distance: float = Field(10.0, gt=0.0, description="travel [m] that starts a new keyframe")
     angle_deg: float = Field(30.0, gt=0.0, description="rotation [deg] that starts a new keyframe")
     submap_voxel: float = Field(0.25, gt=0.0, description="voxel size [m] of the stored submap")
-    submap_radius: float = Field(40.0, gt=0.0, description="submap points farther than this [m] are dropped")
+    submap_radius: float = Field(30.0, gt=0.0, description="submap points farther than this [m] are dropped")
 
 
 class LoopDetectionConfig(StrictModel):
@@ -24,9 +24,12 @@ class LoopDetectionConfig(StrictModel):
 
     radius: float = Field(25.0, gt=0.0, description="candidates within this distance [m] of the new keyframe")
     exclude_recent: float = Field(50.0, ge=0.0, description="skip keyframes fewer than this many metres back")
-    max_candidates: int = Field(3, ge=1, description="nearest candidates registered per keyframe")
+    max_candidates: int = Field(2, ge=1, description="nearest candidates registered per keyframe")
     use_map_closures: bool = Field(True, description="add MapClosures place-recognition candidates")
     map_closures_min_inliers: int = Field(5, ge=1, description="ORB inliers a MapClosures candidate needs")
+    map_closures_radius: float = Field(
+        30.0, gt=0.0, description="submap points within this range [m] form its density map"
+    )
 
 
 class LoopRegistrationConfig(StrictModel):
