@@ -25,6 +25,7 @@ class LoopDetectionConfig(StrictModel):
     radius: float = Field(25.0, gt=0.0, description="candidates within this distance [m] of the new keyframe")
     exclude_recent: float = Field(50.0, ge=0.0, description="skip keyframes fewer than this many metres back")
     max_candidates: int = Field(2, ge=1, description="nearest candidates registered per keyframe")
+    max_loops_per_keyframe: int = Field(2, ge=1, description="stop registering candidates after this many loops")
     use_map_closures: bool = Field(True, description="add MapClosures place-recognition candidates")
     map_closures_min_inliers: int = Field(5, ge=1, description="ORB inliers a MapClosures candidate needs")
     map_closures_radius: float = Field(

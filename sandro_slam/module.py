@@ -95,6 +95,8 @@ class LoopClosureModule:
 
         closed = []
         for other, sources in found.items():
+            if len(closed) >= self.config.loops.max_loops_per_keyframe:
+                break
             self.attempts += 1
             pair = register_submaps(self._descriptions[other], self._descriptions[key], self.config.registration)
             if not pair.accepted:
