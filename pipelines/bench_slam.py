@@ -149,16 +149,22 @@ def _plot(path: Path, trajectories: dict[str, np.ndarray], result: SlamResult) -
     from pipelines.trajectory_metrics import align_se3
 
     truth = trajectories["ground truth"]
-    fig, ax = plt.subplots(figsize=(8, 8))
+    fig, (ax, errors) = plt.subplots(1, 2, figsize=(14, 6), gridspec_kw={"width_ratios": [3, 2]})
     for name, poses in trajectories.items():
         aligned = poses if name == "ground truth" else align_se3(poses, truth) @ poses
         ax.plot(aligned[:, 0, 3], aligned[:, 1, 3], label=name, lw=1.2 if name != "ground truth" else 2.5,
                 alpha=0.9 if name != "ground truth" else 0.4)
+        if name != "ground truth":
+            error = np.linalg.norm(aligned[:, :3, 3] - truth[:, :3, 3], axis=1)
+            errors.plot(result.timestamps - result.timestamps[0], error, label=f"{name} (ATE {ate(poses, truth):.3f} m)")
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_title(f"{len(result.timestamps)} frames, {len(result.loops)} verified loops")
     ax.legend()
+    errors.set_xlabel("time [s]")
+    errors.set_ylabel("position error after SE3 alignment [m]")
+    errors.legend()
     fig.tight_layout()
     tmp = path.with_suffix(".tmp.png")
     fig.savefig(tmp, dpi=120)
