@@ -4,6 +4,9 @@ Per graph (every *.g2o in --data; 2D EDGE_SE2 or 3D EDGE_SE3:QUAT, read with gts
 the first pose):
     reference: plain Levenberg-Marquardt from the file's initial values on the clean graph (the published
         optimum) and its cost (gtsam error, 0.5 * sum of squared whitened residuals).
+    noise: file (the noise models as published) and/or calibrated (every edge's information divided by
+        the a-posteriori variance factor of the reference, 2 * cost / redundancy, so that whitened
+        residuals have unit variance; this moves no optimum, only the GNC inlier threshold's meaning).
     corruption: per rate, rate % as many outlier loops as the graph has real loops (edges between
         non-consecutive ids), between random pose pairs at least two ids apart, each measuring a random
         relative pose (translation uniform in a ball of 5 m, rotation about a random axis by up to
@@ -17,7 +20,7 @@ the first pose):
         reference positions from their centroid), cost_rel = |clean cost at the result - reference cost| /
         reference cost; for GNC the precision and recall of rejecting the injected loops (weight < 0.5)
         and the number of real loops rejected. within_1pct: pose_rel <= 1 % and cost_rel <= 1 %.
-Writes into --out: results.csv (one row per graph, rate, initial values and method), reference.csv,
+Writes into --out: results.csv (one row per graph, noise, rate, initial values and method), reference.csv,
 posegraph.png (translation RMSE per method and rate, one panel per graph) and settings.json.
 """
 
@@ -28,7 +31,7 @@ import json
 import math
 import time
 import zlib
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import gtsam
@@ -45,15 +48,18 @@ from sandro_slam.pose_graph import robust_optimize  # noqa: E402
 
 METHODS = ("gnc_tls", "gnc_gm", "lm", "huber", "cauchy")
 INITS = ("file", "odometry")  # initial values of the corrupted graph: the file's, or the odometry chain
+NOISES = ("file", "calibrated")  # noise models as in the file, or scaled to the reference's residuals
 KERNELS = {"huber": 1.345, "cauchy": 2.3849}  # mEstimator constants on whitened residuals
 PRIOR_SIGMA = 1e-3  # [rad], [m], on the first pose
 OUTLIER_MAX_TRANSLATION = 5.0  # [m]
 OUTLIER_MAX_ANGLE_DEG = 30.0
 QUICK_POSES = 200  # --quick keeps the first graph's first poses only
 TARGET = 0.01  # pose_rel and cost_rel of a robust result within 1 % of the reference
-REFERENCE_FIELDS = ["graph", "dim", "n_poses", "n_odometry", "n_loops", "cost_clean", "scale_m", "time_s"]
+REFERENCE_FIELDS = [
+    "graph", "noise", "dim", "n_poses", "n_odometry", "n_loops", "cost_clean", "variance_factor", "scale_m", "time_s",
+]  # fmt: skip
 RESULT_FIELDS = [
-    "graph", "rate_pct", "n_outliers", "init", "method", "trans_rmse_m", "trans_max_m", "rot_rmse_deg",
+    "graph", "noise", "rate_pct", "n_outliers", "init", "method", "trans_rmse_m", "trans_max_m", "rot_rmse_deg",
     "pose_rel", "cost", "cost_rel", "precision", "recall", "real_rejected", "time_s", "within_1pct", "error",
 ]  # fmt: skip
 
@@ -79,6 +85,7 @@ class Reference:
     cost: float
     T: np.ndarray  # (N, 4, 4) T_world_pose in key order
     scale: float  # [m], RMS distance of the positions from their centroid
+    variance_factor: float  # 2 * cost / redundancy: 1 when the noise models match the residuals
 
 
 def _prior(key: int, pose: gtsam.Pose2 | gtsam.Pose3, is3d: bool) -> gtsam.NonlinearFactor:
@@ -231,10 +238,29 @@ def reference(problem: Problem) -> tuple[Reference, float]:
     start = time.perf_counter()
     values = gtsam.LevenbergMarquardtOptimizer(graph, problem.initial, params).optimize()
     elapsed = time.perf_counter() - start
+    return _reference_at(problem, values), elapsed
+
+
+def _reference_at(problem: Problem, values: gtsam.Values) -> Reference:
+    graph, _ = build_graph(problem, [])
     T = pose_matrices(values, problem.keys, problem.is3d)
     positions = T[:, :3, 3]
     scale = float(np.sqrt(np.mean(np.sum((positions - positions.mean(axis=0)) ** 2, axis=1))))
-    return Reference(values, graph.error(values), T, scale), elapsed
+    redundancy = sum(graph.at(i).dim() for i in range(graph.size())) - (6 if problem.is3d else 3) * len(problem.keys)
+    cost = graph.error(values)
+    return Reference(values, cost, T, scale, 2.0 * cost / redundancy)
+
+
+def calibrated(problem: Problem, ref: Reference) -> tuple[Problem, Reference]:
+    """The problem with every edge's information divided by the reference's variance factor, and its
+    reference (the same optimum, a variance factor of 1)."""
+
+    def scaled(factor: gtsam.NonlinearFactor) -> gtsam.NonlinearFactor:
+        model = gtsam.noiseModel.Gaussian.Information(factor.noiseModel().information() / ref.variance_factor)
+        return type(factor)(*factor.keys(), factor.measured(), model)
+
+    problem = replace(problem, odometry=[scaled(f) for f in problem.odometry], loops=[scaled(f) for f in problem.loops])
+    return problem, _reference_at(problem, ref.values)
 
 
 def compare(values: gtsam.Values, problem: Problem, ref: Reference) -> dict[str, float]:
@@ -266,20 +292,15 @@ def rejection(weights: np.ndarray, n_known: int, n_real: int) -> dict[str, float
     }
 
 
-def run_one(problem: Problem, ref: Reference, rate_pct: int, init: str, method: str,
-            graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, known: list[int]) -> dict[str, object]:
-    """One optimisation of the corrupted graph and its row of metrics; an exception becomes `error`."""
-    row: dict[str, object] = {
-        "graph": problem.name, "rate_pct": rate_pct, "n_outliers": graph.size() - len(known) - len(problem.loops),
-        "init": init, "method": method,
-    }  # fmt: skip
+def run_one(problem: Problem, ref: Reference, method: str, graph: gtsam.NonlinearFactorGraph,
+            initial: gtsam.Values, known: list[int]) -> dict[str, object]:
+    """One optimisation of the corrupted graph: its metrics and time [s]; an exception becomes `error`."""
     start = time.perf_counter()
     try:
         values, weights = optimize(method, graph, initial, known)
     except RuntimeError as exc:
-        return {**row, "time_s": time.perf_counter() - start, "within_1pct": 0, "error": f"{type(exc).__name__}: {exc}"}
-    row["time_s"] = time.perf_counter() - start
-    row.update(compare(values, problem, ref))
+        return {"time_s": time.perf_counter() - start, "within_1pct": 0, "error": f"{type(exc).__name__}: {exc}"}
+    row: dict[str, object] = {"time_s": time.perf_counter() - start, **compare(values, problem, ref)}
     if weights is not None:
         row.update(rejection(weights, len(known), len(problem.loops)))
     row["within_1pct"] = int(row["pose_rel"] <= TARGET and row["cost_rel"] <= TARGET)
@@ -296,6 +317,7 @@ class Settings:
     rates: list[int]  # [%] of the real loop count
     methods: list[str]
     inits: list[str]
+    noises: list[str]
     max_poses: int | None
     seed: int
     out: str
@@ -309,6 +331,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rates", default="10,30,50", help="outlier loops in %% of the real loops (10,30,50)")
     parser.add_argument("--methods", default=",".join(METHODS), help=f"comma list of {','.join(METHODS)}")
     parser.add_argument("--init", default="file", help="initial values: comma list of file,odometry (file)")
+    parser.add_argument("--noise", default="file", help="noise models: comma list of file,calibrated (file)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the injected outliers (0)")
     parser.add_argument("--quick", action="store_true", help=f"first graph only, its first {QUICK_POSES} poses")
 
@@ -327,8 +350,8 @@ def resolve(args: argparse.Namespace) -> Settings:
     """Defaults filled in and values checked.
 
     Raises:
-        UsageError: a missing --data folder or one without .g2o files, an unknown graph, method or init,
-            a bad rate.
+        UsageError: a missing --data folder or one without .g2o files, an unknown graph, method, init or
+            noise, a bad rate.
     """
     if not args.data.is_dir():
         raise UsageError(f"--data {args.data}: no such folder")
@@ -342,6 +365,7 @@ def resolve(args: argparse.Namespace) -> Settings:
         rates=_rates(args.rates),
         methods=parse_list(args.methods, METHODS, "methods"),
         inits=parse_list(args.init, INITS, "init"),
+        noises=parse_list(args.noise, NOISES, "noise"),
         max_poses=QUICK_POSES if args.quick else None,
         seed=args.seed,
         out=str(args.out if args.out is not None else default_out_dir("bench_posegraph")),
@@ -353,26 +377,28 @@ def _cell(value: object, spec: str) -> str:
 
 
 def format_table(references: list[dict[str, object]], rows: list[dict[str, object]]) -> str:
-    """Text tables: the references, then one line per graph, rate, init and method."""
-    lines = ["reference (clean graph, LM from the file's initial values)",
-             f"{'graph':<16}{'dim':>4}{'poses':>7}{'odom':>7}{'loops':>7}{'cost':>13}{'scale m':>10}{'time s':>8}"]
+    """Text tables: the references, then one line per graph, noise, rate, init and method."""
+    lines = ["reference (clean graph, LM from the file's initial values; variance factor = 2 cost / redundancy)",
+             f"{'graph':<16}{'noise':<11}{'dim':>4}{'poses':>7}{'odom':>7}{'loops':>7}{'cost':>13}{'var.f.':>10}"
+             f"{'scale m':>9}{'time s':>8}"]
     for ref in references:
         lines.append(
-            f"{ref['graph']:<16}{ref['dim']:>4}{ref['n_poses']:>7}{ref['n_odometry']:>7}{ref['n_loops']:>7}"
-            f"{ref['cost_clean']:>13.6g}{ref['scale_m']:>10.1f}{ref['time_s']:>8.2f}"
+            f"{ref['graph']:<16}{ref['noise']:<11}{ref['dim']:>4}{ref['n_poses']:>7}{ref['n_odometry']:>7}"
+            f"{ref['n_loops']:>7}{ref['cost_clean']:>13.6g}{ref['variance_factor']:>10.3g}{ref['scale_m']:>9.1f}"
+            f"{ref['time_s']:>8.2f}"
         )
-    lines += ["", "corrupted graphs (pose_rel, cost_rel: relative to the reference; prec/rec: rejection of the "
-              "injected loops)",
-              f"{'graph':<16}{'rate%':>6}{'n_out':>6} {'init':<9}{'method':<8}{'rmse m':>10}{'max m':>10}"
-              f"{'rot deg':>9}{'pose_rel%':>10}{'cost_rel%':>11}{'prec':>6}{'rec':>6}{'real_rej':>9}{'time s':>8}  ok"]
+    lines += ["", "corrupted graphs (pose_rel = rmse / scale, cost_rel: clean cost vs the reference's; prec/rec: "
+              "rejection of the injected loops; ok: both rel <= 1 %)",
+              f"{'graph':<16}{'noise':<11}{'rate%':>6}{'n_out':>6} {'init':<9}{'method':<8}{'rmse m':>10}"
+              f"{'max m':>10}{'rot deg':>9}{'pose_rel%':>10}{'cost_rel%':>11}{'prec':>6}{'rec':>6}{'real_rej':>9}"
+              f"{'time s':>8}  ok"]
     for r in rows:
+        label = f"{r['graph']:<16}{r['noise']:<11}{r['rate_pct']:>6}{r['n_outliers']:>6} {r['init']:<9}{r['method']:<8}"
         if r["error"]:
-            lines.append(f"{r['graph']:<16}{r['rate_pct']:>6}{r['n_outliers']:>6} {r['init']:<9}{r['method']:<8}"
-                         f"  error: {r['error']}")
+            lines.append(f"{label}  error: {r['error']}")
             continue
         lines.append(
-            f"{r['graph']:<16}{r['rate_pct']:>6}{r['n_outliers']:>6} {r['init']:<9}{r['method']:<8}"
-            f"{r['trans_rmse_m']:>10.3g}{r['trans_max_m']:>10.3g}{r['rot_rmse_deg']:>9.3g}"
+            f"{label}{r['trans_rmse_m']:>10.3g}{r['trans_max_m']:>10.3g}{r['rot_rmse_deg']:>9.3g}"
             f"{100 * r['pose_rel']:>10.3g}{100 * r['cost_rel']:>11.3g}{_cell(r.get('precision'), '.2f'):>6}"
             f"{_cell(r.get('recall'), '.2f'):>6}{_cell(r.get('real_rejected'), 'd'):>9}{r['time_s']:>8.2f}"
             f"  {'yes' if r['within_1pct'] else 'no'}"
@@ -381,11 +407,11 @@ def format_table(references: list[dict[str, object]], rows: list[dict[str, objec
 
 
 def plot(rows: list[dict[str, object]], references: list[dict[str, object]], path: Path) -> None:
-    """Translation RMSE [m] per method (and init) and outlier rate, one log-scale panel per graph; the
-    dashed line is 1 % of the trajectory scale."""
+    """Translation RMSE [m] per method (and init) and outlier rate, one log-scale panel per graph and noise;
+    the dashed line is 1 % of the trajectory scale."""
     fig, axes = plt.subplots(1, len(references), figsize=(5.5 * len(references), 4.2), squeeze=False)
     for ax, ref in zip(axes[0], references):
-        mine = [row for row in rows if row["graph"] == ref["graph"]]
+        mine = [row for row in rows if (row["graph"], row["noise"]) == (ref["graph"], ref["noise"])]
         rates = list(dict.fromkeys(row["rate_pct"] for row in mine))
         series = list(dict.fromkeys((row["method"], row["init"]) for row in mine))
         width = 0.8 / max(len(series), 1)
@@ -402,7 +428,7 @@ def plot(rows: list[dict[str, object]], references: list[dict[str, object]], pat
         ax.set_xticks(np.arange(len(rates)), [f"{rate} %" for rate in rates])
         ax.set_xlabel("injected outlier loops (% of real loops)")
         ax.set_ylabel("translation RMSE vs clean optimum [m]")
-        ax.set_title(f"{ref['graph']} ({ref['n_poses']} poses, {ref['n_loops']} loops)")
+        ax.set_title(f"{ref['graph']}, {ref['noise']} noise ({ref['n_poses']} poses, {ref['n_loops']} loops)")
         ax.grid(True, axis="y", which="both", alpha=0.3)
     axes[0][0].legend(fontsize=8)
     fig.tight_layout()
@@ -411,7 +437,8 @@ def plot(rows: list[dict[str, object]], references: list[dict[str, object]], pat
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run every graph, rate, init and method; write CSVs, plot and settings into --out; print the tables."""
+    """Run every graph, noise, rate, init and method; write CSVs, plot and settings into --out; print the
+    tables."""
     settings = resolve(args)
     out = Path(settings.out)
     try:
@@ -421,23 +448,31 @@ def run(args: argparse.Namespace) -> int:
     problems = [load_problem(Path(settings.data) / f"{name}.g2o", settings.max_poses) for name in settings.graphs]
 
     references, rows = [], []
-    total = len(problems) * len(settings.rates) * len(settings.inits) * len(settings.methods)
-    with tqdm(total=total, desc="posegraph", unit="run", dynamic_ncols=True) as progress:
-        for problem in problems:
-            ref, elapsed = reference(problem)
-            references.append({
-                "graph": problem.name, "dim": 3 if problem.is3d else 2, "n_poses": len(problem.keys),
-                "n_odometry": len(problem.odometry), "n_loops": len(problem.loops), "cost_clean": ref.cost,
-                "scale_m": ref.scale, "time_s": elapsed,
-            })  # fmt: skip
-            initials = {"file": problem.initial, "odometry": odometry_initial(problem)}
-            for rate in settings.rates:
-                graph, known = build_graph(problem, inject_outliers(problem, rate, settings.seed))
-                for init in settings.inits:
-                    for method in settings.methods:
-                        progress.set_postfix_str(f"{problem.name} {rate}% {init} {method}")
-                        rows.append(run_one(problem, ref, rate, init, method, graph, initials[init], known))
-                        progress.update()
+    runs = len(settings.noises) * len(settings.rates) * len(settings.inits) * len(settings.methods)
+    with tqdm(total=len(problems) * runs, desc="posegraph", unit="run", dynamic_ncols=True) as progress:
+        for file_problem in problems:
+            file_ref, elapsed = reference(file_problem)
+            initials = {"file": file_problem.initial, "odometry": odometry_initial(file_problem)}
+            for noise in settings.noises:
+                problem, ref = (file_problem, file_ref) if noise == "file" else calibrated(file_problem, file_ref)
+                references.append({
+                    "graph": problem.name, "noise": noise, "dim": 3 if problem.is3d else 2,
+                    "n_poses": len(problem.keys), "n_odometry": len(problem.odometry), "n_loops": len(problem.loops),
+                    "cost_clean": ref.cost, "variance_factor": ref.variance_factor, "scale_m": ref.scale,
+                    "time_s": elapsed,
+                })  # fmt: skip
+                for rate in settings.rates:
+                    graph, known = build_graph(problem, inject_outliers(problem, rate, settings.seed))
+                    for init in settings.inits:
+                        for method in settings.methods:
+                            progress.set_postfix_str(f"{problem.name} {noise} {rate}% {init} {method}")
+                            labels = {
+                                "graph": problem.name, "noise": noise, "rate_pct": rate,
+                                "n_outliers": graph.size() - len(known) - len(problem.loops),
+                                "init": init, "method": method,
+                            }  # fmt: skip
+                            rows.append({**labels, **run_one(problem, ref, method, graph, initials[init], known)})
+                            progress.update()
 
     write_csv(out / "reference.csv", references, REFERENCE_FIELDS)
     write_csv(out / "results.csv", rows, RESULT_FIELDS)
