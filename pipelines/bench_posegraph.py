@@ -4,9 +4,9 @@ Per graph (every *.g2o in --data; 2D EDGE_SE2 or 3D EDGE_SE3:QUAT, read with gts
 the first pose):
     reference: plain Levenberg-Marquardt from the file's initial values on the clean graph (the published
         optimum) and its cost (gtsam error, 0.5 * sum of squared whitened residuals).
-    noise: file (the noise models as published) and/or calibrated (every edge's information divided by
-        the a-posteriori variance factor of the reference, 2 * cost / redundancy, so that whitened
-        residuals have unit variance; this moves no optimum, only the GNC inlier threshold's meaning).
+    info scale: every edge's information matrix multiplied by a factor (default 1: as published; 'auto':
+        1 / the reference's a-posteriori variance factor 2 * cost / redundancy, so whitened residuals get
+        unit variance). No optimum moves; for GNC it is the same as dividing its inlier threshold by it.
     corruption: per rate, rate % as many outlier loops as the graph has real loops (edges between
         non-consecutive ids), between random pose pairs at least two ids apart, each measuring a random
         relative pose (translation uniform in a ball of 5 m, rotation about a random axis by up to
@@ -20,7 +20,7 @@ the first pose):
         reference positions from their centroid), cost_rel = |clean cost at the result - reference cost| /
         reference cost; for GNC the precision and recall of rejecting the injected loops (weight < 0.5)
         and the number of real loops rejected. within_1pct: pose_rel <= 1 % and cost_rel <= 1 %.
-Writes into --out: results.csv (one row per graph, noise, rate, initial values and method), reference.csv,
+Writes into --out: results.csv (one row per graph, info scale, rate, initial values and method), reference.csv,
 posegraph.png (translation RMSE per method and rate, one panel per graph) and settings.json.
 """
 
@@ -48,7 +48,6 @@ from sandro_slam.pose_graph import robust_optimize  # noqa: E402
 
 METHODS = ("gnc_tls", "gnc_gm", "lm", "huber", "cauchy")
 INITS = ("file", "odometry")  # initial values of the corrupted graph: the file's, or the odometry chain
-NOISES = ("file", "calibrated")  # noise models as in the file, or scaled to the reference's residuals
 KERNELS = {"huber": 1.345, "cauchy": 2.3849}  # mEstimator constants on whitened residuals
 PRIOR_SIGMA = 1e-3  # [rad], [m], on the first pose
 OUTLIER_MAX_TRANSLATION = 5.0  # [m]
@@ -56,10 +55,10 @@ OUTLIER_MAX_ANGLE_DEG = 30.0
 QUICK_POSES = 200  # --quick keeps the first graph's first poses only
 TARGET = 0.01  # pose_rel and cost_rel of a robust result within 1 % of the reference
 REFERENCE_FIELDS = [
-    "graph", "noise", "dim", "n_poses", "n_odometry", "n_loops", "cost_clean", "variance_factor", "scale_m", "time_s",
+    "graph", "info_scale", "dim", "n_poses", "n_odometry", "n_loops", "cost_clean", "variance_factor", "scale_m", "time_s",
 ]  # fmt: skip
 RESULT_FIELDS = [
-    "graph", "noise", "rate_pct", "n_outliers", "init", "method", "trans_rmse_m", "trans_max_m", "rot_rmse_deg",
+    "graph", "info_scale", "rate_pct", "n_outliers", "init", "method", "trans_rmse_m", "trans_max_m", "rot_rmse_deg",
     "pose_rel", "cost", "cost_rel", "precision", "recall", "real_rejected", "time_s", "within_1pct", "error",
 ]  # fmt: skip
 
@@ -251,12 +250,12 @@ def _reference_at(problem: Problem, values: gtsam.Values) -> Reference:
     return Reference(values, cost, T, scale, 2.0 * cost / redundancy)
 
 
-def calibrated(problem: Problem, ref: Reference) -> tuple[Problem, Reference]:
-    """The problem with every edge's information divided by the reference's variance factor, and its
-    reference (the same optimum, a variance factor of 1)."""
+def scale_information(problem: Problem, ref: Reference, scale: float) -> tuple[Problem, Reference]:
+    """The problem with every edge's information multiplied by `scale`, and its reference (the same
+    optimum; cost times `scale`)."""
 
     def scaled(factor: gtsam.NonlinearFactor) -> gtsam.NonlinearFactor:
-        model = gtsam.noiseModel.Gaussian.Information(factor.noiseModel().information() / ref.variance_factor)
+        model = gtsam.noiseModel.Gaussian.Information(factor.noiseModel().information() * scale)
         return type(factor)(*factor.keys(), factor.measured(), model)
 
     problem = replace(problem, odometry=[scaled(f) for f in problem.odometry], loops=[scaled(f) for f in problem.loops])
@@ -317,7 +316,7 @@ class Settings:
     rates: list[int]  # [%] of the real loop count
     methods: list[str]
     inits: list[str]
-    noises: list[str]
+    info_scales: list[str]  # positive numbers or 'auto'
     max_poses: int | None
     seed: int
     out: str
@@ -331,7 +330,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rates", default="10,30,50", help="outlier loops in %% of the real loops (10,30,50)")
     parser.add_argument("--methods", default=",".join(METHODS), help=f"comma list of {','.join(METHODS)}")
     parser.add_argument("--init", default="file", help="initial values: comma list of file,odometry (file)")
-    parser.add_argument("--noise", default="file", help="noise models: comma list of file,calibrated (file)")
+    parser.add_argument(
+        "--info-scale", default="1", help="comma list of factors on every edge's information, or 'auto' (1)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of the injected outliers (0)")
     parser.add_argument("--quick", action="store_true", help=f"first graph only, its first {QUICK_POSES} poses")
 
@@ -346,12 +347,24 @@ def _rates(text: str) -> list[int]:
     return list(dict.fromkeys(rates))
 
 
+def _info_scales(text: str) -> list[str]:
+    scales = [scale.strip() for scale in text.split(",") if scale.strip()]
+    for scale in scales:
+        try:
+            ok = scale == "auto" or float(scale) > 0
+        except ValueError:
+            ok = False
+        if not ok:
+            raise UsageError(f"--info-scale {scale!r}: expected positive numbers or 'auto'")
+    return list(dict.fromkeys(scales)) or ["1"]
+
+
 def resolve(args: argparse.Namespace) -> Settings:
     """Defaults filled in and values checked.
 
     Raises:
         UsageError: a missing --data folder or one without .g2o files, an unknown graph, method, init or
-            noise, a bad rate.
+            info scale, a bad rate.
     """
     if not args.data.is_dir():
         raise UsageError(f"--data {args.data}: no such folder")
@@ -365,7 +378,7 @@ def resolve(args: argparse.Namespace) -> Settings:
         rates=_rates(args.rates),
         methods=parse_list(args.methods, METHODS, "methods"),
         inits=parse_list(args.init, INITS, "init"),
-        noises=parse_list(args.noise, NOISES, "noise"),
+        info_scales=_info_scales(args.info_scale),
         max_poses=QUICK_POSES if args.quick else None,
         seed=args.seed,
         out=str(args.out if args.out is not None else default_out_dir("bench_posegraph")),
@@ -377,23 +390,23 @@ def _cell(value: object, spec: str) -> str:
 
 
 def format_table(references: list[dict[str, object]], rows: list[dict[str, object]]) -> str:
-    """Text tables: the references, then one line per graph, noise, rate, init and method."""
+    """Text tables: the references, then one line per graph, info scale, rate, init and method."""
     lines = ["reference (clean graph, LM from the file's initial values; variance factor = 2 cost / redundancy)",
-             f"{'graph':<16}{'noise':<11}{'dim':>4}{'poses':>7}{'odom':>7}{'loops':>7}{'cost':>13}{'var.f.':>10}"
+             f"{'graph':<16}{'info x':>8} {'dim':>4}{'poses':>7}{'odom':>7}{'loops':>7}{'cost':>13}{'var.f.':>10}"
              f"{'scale m':>9}{'time s':>8}"]
     for ref in references:
         lines.append(
-            f"{ref['graph']:<16}{ref['noise']:<11}{ref['dim']:>4}{ref['n_poses']:>7}{ref['n_odometry']:>7}"
+            f"{ref['graph']:<16}{ref['info_scale']:>8.3g} {ref['dim']:>4}{ref['n_poses']:>7}{ref['n_odometry']:>7}"
             f"{ref['n_loops']:>7}{ref['cost_clean']:>13.6g}{ref['variance_factor']:>10.3g}{ref['scale_m']:>9.1f}"
             f"{ref['time_s']:>8.2f}"
         )
     lines += ["", "corrupted graphs (pose_rel = rmse / scale, cost_rel: clean cost vs the reference's; prec/rec: "
               "rejection of the injected loops; ok: both rel <= 1 %)",
-              f"{'graph':<16}{'noise':<11}{'rate%':>6}{'n_out':>6} {'init':<9}{'method':<8}{'rmse m':>10}"
+              f"{'graph':<16}{'info x':>8}{'rate%':>6}{'n_out':>6} {'init':<9}{'method':<8}{'rmse m':>10}"
               f"{'max m':>10}{'rot deg':>9}{'pose_rel%':>10}{'cost_rel%':>11}{'prec':>6}{'rec':>6}{'real_rej':>9}"
               f"{'time s':>8}  ok"]
     for r in rows:
-        label = f"{r['graph']:<16}{r['noise']:<11}{r['rate_pct']:>6}{r['n_outliers']:>6} {r['init']:<9}{r['method']:<8}"
+        label = f"{r['graph']:<16}{r['info_scale']:>8.3g}{r['rate_pct']:>6}{r['n_outliers']:>6} {r['init']:<9}{r['method']:<8}"
         if r["error"]:
             lines.append(f"{label}  error: {r['error']}")
             continue
@@ -407,11 +420,11 @@ def format_table(references: list[dict[str, object]], rows: list[dict[str, objec
 
 
 def plot(rows: list[dict[str, object]], references: list[dict[str, object]], path: Path) -> None:
-    """Translation RMSE [m] per method (and init) and outlier rate, one log-scale panel per graph and noise;
+    """Translation RMSE [m] per method (and init) and outlier rate, one log-scale panel per graph and info scale;
     the dashed line is 1 % of the trajectory scale."""
     fig, axes = plt.subplots(1, len(references), figsize=(5.5 * len(references), 4.2), squeeze=False)
     for ax, ref in zip(axes[0], references):
-        mine = [row for row in rows if (row["graph"], row["noise"]) == (ref["graph"], ref["noise"])]
+        mine = [row for row in rows if (row["graph"], row["info_scale"]) == (ref["graph"], ref["info_scale"])]
         rates = list(dict.fromkeys(row["rate_pct"] for row in mine))
         series = list(dict.fromkeys((row["method"], row["init"]) for row in mine))
         width = 0.8 / max(len(series), 1)
@@ -428,7 +441,7 @@ def plot(rows: list[dict[str, object]], references: list[dict[str, object]], pat
         ax.set_xticks(np.arange(len(rates)), [f"{rate} %" for rate in rates])
         ax.set_xlabel("injected outlier loops (% of real loops)")
         ax.set_ylabel("translation RMSE vs clean optimum [m]")
-        ax.set_title(f"{ref['graph']}, {ref['noise']} noise ({ref['n_poses']} poses, {ref['n_loops']} loops)")
+        ax.set_title(f"{ref['graph']}, information x {ref['info_scale']:.3g}\n({ref['n_poses']} poses, {ref['n_loops']} loops)")
         ax.grid(True, axis="y", which="both", alpha=0.3)
     axes[0][0].legend(fontsize=8)
     fig.tight_layout()
@@ -437,7 +450,7 @@ def plot(rows: list[dict[str, object]], references: list[dict[str, object]], pat
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run every graph, noise, rate, init and method; write CSVs, plot and settings into --out; print the
+    """Run every graph, info scale, rate, init and method; write CSVs, plot and settings into --out; print the
     tables."""
     settings = resolve(args)
     out = Path(settings.out)
@@ -448,15 +461,16 @@ def run(args: argparse.Namespace) -> int:
     problems = [load_problem(Path(settings.data) / f"{name}.g2o", settings.max_poses) for name in settings.graphs]
 
     references, rows = [], []
-    runs = len(settings.noises) * len(settings.rates) * len(settings.inits) * len(settings.methods)
+    runs = len(settings.info_scales) * len(settings.rates) * len(settings.inits) * len(settings.methods)
     with tqdm(total=len(problems) * runs, desc="posegraph", unit="run", dynamic_ncols=True) as progress:
         for file_problem in problems:
             file_ref, elapsed = reference(file_problem)
             initials = {"file": file_problem.initial, "odometry": odometry_initial(file_problem)}
-            for noise in settings.noises:
-                problem, ref = (file_problem, file_ref) if noise == "file" else calibrated(file_problem, file_ref)
+            for text in settings.info_scales:
+                info_scale = 1.0 / file_ref.variance_factor if text == "auto" else float(text)
+                problem, ref = scale_information(file_problem, file_ref, info_scale)
                 references.append({
-                    "graph": problem.name, "noise": noise, "dim": 3 if problem.is3d else 2,
+                    "graph": problem.name, "info_scale": info_scale, "dim": 3 if problem.is3d else 2,
                     "n_poses": len(problem.keys), "n_odometry": len(problem.odometry), "n_loops": len(problem.loops),
                     "cost_clean": ref.cost, "variance_factor": ref.variance_factor, "scale_m": ref.scale,
                     "time_s": elapsed,
@@ -465,9 +479,9 @@ def run(args: argparse.Namespace) -> int:
                     graph, known = build_graph(problem, inject_outliers(problem, rate, settings.seed))
                     for init in settings.inits:
                         for method in settings.methods:
-                            progress.set_postfix_str(f"{problem.name} {noise} {rate}% {init} {method}")
+                            progress.set_postfix_str(f"{problem.name} x{info_scale:.3g} {rate}% {init} {method}")
                             labels = {
-                                "graph": problem.name, "noise": noise, "rate_pct": rate,
+                                "graph": problem.name, "info_scale": info_scale, "rate_pct": rate,
                                 "n_outliers": graph.size() - len(known) - len(problem.loops),
                                 "init": init, "method": method,
                             }  # fmt: skip

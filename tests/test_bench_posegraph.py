@@ -125,7 +125,7 @@ def _exit_code(argv: list[str]) -> int:
         (["--graphs", "nope"], "unknown or no graphs"),
         (["--methods", "nope"], "unknown or no methods"),
         (["--rates", "x"], "expected a comma list of integers"),
-        (["--noise", "loud"], "unknown or no noise"),
+        (["--info-scale", "0"], "expected positive numbers or 'auto'"),
     ],
 )
 def test_bad_arguments_exit_2_with_one_line(data, tmp_path, capsys, args, message):
