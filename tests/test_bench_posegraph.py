@@ -50,7 +50,8 @@ def _write_g2o(path: Path, dim: int, seed: int = 0) -> None:
         info = _g2o_information([1 / SIGMA_T**2] * 3 + [1 / SIGMA_R**2] * 3)  # g2o order [t, r]
         for i, pose in enumerate(chain):
             q = pose.rotation().toQuaternion()
-            lines.append(f"VERTEX_SE3:QUAT {i} {' '.join(map(str, pose.translation()))} {q.x()} {q.y()} {q.z()} {q.w()}")
+            t = " ".join(map(str, pose.translation()))
+            lines.append(f"VERTEX_SE3:QUAT {i} {t} {q.x()} {q.y()} {q.z()} {q.w()}")
         for (a, b), pose in measured.items():
             q = pose.rotation().toQuaternion()
             t = " ".join(map(str, pose.translation()))
