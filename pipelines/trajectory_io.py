@@ -2,17 +2,21 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from pipelines.atomic_write import atomic_path
+
 
 def write_tum(path: Path, timestamps: np.ndarray, poses: np.ndarray) -> None:
-    """Write (N,) timestamps [s] and (N, 4, 4) poses T_world_sensor as a TUM trajectory."""
+    """Write (N,) timestamps [s] and (N, 4, 4) poses T_world_sensor as a TUM trajectory, atomically."""
     quaternions = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x y z w
     rows = np.column_stack([timestamps, poses[:, :3, 3], quaternions])
-    np.savetxt(path, rows, fmt="%.9f")
+    with atomic_path(path) as tmp:
+        np.savetxt(tmp, rows, fmt="%.9f")
 
 
 def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -30,5 +34,41 @@ def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_kitti(path: Path, poses: np.ndarray) -> None:
-    """Write (N, 4, 4) poses as KITTI lines: the top 3x4 of each matrix, row-major."""
-    np.savetxt(path, poses[:, :3, :].reshape(len(poses), 12), fmt="%.9f")
+    """Write (N, 4, 4) poses as KITTI lines, atomically: the top 3x4 of each matrix, row-major."""
+    with atomic_path(path) as tmp:
+        np.savetxt(tmp, poses[:, :3, :].reshape(len(poses), 12), fmt="%.9f")
+
+
+def read_kitti(path: Path) -> np.ndarray:
+    """(N, 4, 4) poses from a KITTI file (12 values per line); ValueError if it is not one."""
+    try:
+        rows = np.loadtxt(path, comments="#", ndmin=2)
+    except ValueError as error:
+        raise ValueError(f"{path}: not a KITTI trajectory ({error})") from None
+    if rows.shape[1] != 12 or len(rows) == 0:
+        raise ValueError(f"{path}: a KITTI trajectory has 12 values per line, found {rows.shape[1]}")
+    poses = np.tile(np.eye(4), (len(rows), 1, 1))
+    poses[:, :3, :] = rows.reshape(-1, 3, 4)
+    return poses
+
+
+def read_trajectory(path: Path) -> tuple[np.ndarray | None, np.ndarray]:
+    """(timestamps or None, (N, 4, 4) poses) from a TUM file (8 columns) or a KITTI file (12, no timestamps).
+
+    Raises:
+        ValueError: a missing file, or one that is neither.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"no such trajectory file: {path}")
+    try:
+        with warnings.catch_warnings():  # an empty file: the error below says it better
+            warnings.simplefilter("ignore", UserWarning)
+            rows = np.loadtxt(path, comments="#", ndmin=2, max_rows=1)
+    except ValueError:
+        rows = np.empty((0, 0))
+    if rows.shape[1:] == (12,):
+        return None, read_kitti(path)
+    if rows.shape[1:] == (8,):
+        return read_tum(path)
+    raise ValueError(f"{path}: neither a TUM (8 columns) nor a KITTI (12 values per line) trajectory")
