@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -27,3 +29,20 @@ def write_text_atomic(path: str | Path, text: str) -> None:
     """Write `text` to `path` atomically."""
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+@contextmanager
+def atomic_dir(path: str | Path) -> Iterator[Path]:
+    """Yield a path (not yet existing, with the same name as `path`) to build a folder at; it replaces `path`
+    (file or folder) when the block ends without error and is removed otherwise. It lies in a hidden
+    temporary folder beside `path`, so writers that name inner files after their folder get the final names."""
+    path = Path(path)
+    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    try:
+        built = staging / path.name
+        yield built
+        if path.exists() or path.is_symlink():
+            os.replace(path, staging / "replaced")  # a folder cannot be renamed over a non-empty one
+        os.replace(built, path)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
