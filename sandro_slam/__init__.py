@@ -2,6 +2,9 @@
 
 from sandro_slam.config import SlamConfig
 from sandro_slam.module import LoopClosure, LoopClosureModule
+from sandro_slam.merge import MergeResult, merge_sessions
 from sandro_slam.offline import OfflineSlam, SlamResult
+from sandro_slam.session import Session
 
-__all__ = ["LoopClosure", "LoopClosureModule", "OfflineSlam", "SlamConfig", "SlamResult"]
+__all__ = ["LoopClosure", "LoopClosureModule", "MergeResult", "OfflineSlam", "Session", "SlamConfig", "SlamResult",
+           "merge_sessions"]

@@ -37,6 +37,9 @@ class LoopRegistrationConfig(StrictModel):
     """Registration and verification of one candidate pair of submaps."""
 
     fpfh_voxel: float = Field(1.0, gt=0.0, description="voxel [m] of the FPFH keypoints")
+    fpfh_max_nn: int = Field(
+        50, ge=1, description="neighbours per FPFH descriptor (100: twice the time, the same loops in simulation)"
+    )
     sandro: SandroConfig = Field(default_factory=lambda: SandroConfig(noise_bound=1.0))
     icp_refine: bool = Field(True, description="point-to-plane ICP from the SANDRO transform")
     icp_max_distance: float = Field(1.0, gt=0.0, description="ICP correspondence distance [m]")
@@ -60,6 +63,27 @@ class GraphConfig(StrictModel):
     odometry_sigma_floor: float = Field(0.01, gt=0.0, description="[m] and [rad], added to both")
 
 
+class MergeConfig(StrictModel):
+    """Joining sessions recorded at different times (`sandro_slam.merge_sessions`, `sandro-merge`)."""
+
+    candidates_per_keyframe: int = Field(3, ge=1, description="place-recognition candidates per keyframe")
+    max_candidate_pairs: int = Field(
+        60, ge=1, description="place-recognition pairs registered per pair of sessions, best first"
+    )
+    descriptor_radius: float = Field(30.0, gt=0.0, description="radius [m] of the ring-key place descriptor")
+    consistency_translation: float = Field(
+        1.0, gt=0.0, description="two loops agree when their session transforms move keyframes less than this [m]"
+    )
+    consistency_rotation_deg: float = Field(2.0, gt=0.0, description="... and differ by less than this [deg]")
+    min_loops: int = Field(
+        3, ge=1, description="agreeing inter-session loops, kept by the robust back end, that join two sessions"
+    )
+    guided_radius: float = Field(
+        10.0, ge=0.0, description="once aligned, register keyframe pairs this close [m] (0: no guided search)"
+    )
+    map_voxel: float = Field(0.5, gt=0.0, description="voxel [m] of the merged map sandro-merge writes")
+
+
 class SlamConfig(YamlConfig):
     """Everything `OfflineSlam` and `LoopClosureModule` need; `odometry` is KISS-ICP's own config."""
 
@@ -68,6 +92,7 @@ class SlamConfig(YamlConfig):
     loops: LoopDetectionConfig = Field(default_factory=LoopDetectionConfig)
     registration: LoopRegistrationConfig = Field(default_factory=LoopRegistrationConfig)
     graph: GraphConfig = Field(default_factory=GraphConfig)
+    merge: MergeConfig = Field(default_factory=MergeConfig)
 
     @model_validator(mode="after")
     def _odometry_voxel(self) -> "SlamConfig":

@@ -100,6 +100,8 @@ def simulate_sequence(
     wobble_deg: float = 0.3,
     layout: CityLayout = CityLayout(),
     lidar: SpinningLidar = SpinningLidar(),
+    loop: tuple[float, float, float, float] | None = None,
+    start_distance: float = 0.0,
 ) -> SimulatedSequence:
     """A drive of `laps` laps (about 400 m each) around the two central blocks of a seeded city.
 
@@ -113,10 +115,12 @@ def simulate_sequence(
         wobble_deg: roll and pitch wobble amplitude [deg] (0: none).
         layout: street grid of the city.
         lidar: the sensor model.
+        loop: (xmin, ymin, xmax, ymax) street centrelines [m] of the loop driven (None: `layout.loop`).
+        start_distance: the drive starts this far [m] along the loop from its south mid-point.
     """
     world = build_city(seed, layout)
     trajectory = Trajectory(
-        route=Route(*layout.loop),
+        route=Route(*(layout.loop if loop is None else loop), start=start_distance),
         speed=spacing / lidar.sweep_period,
         lane_offset=lane_offset,
         wobble=random_wobble(np.random.default_rng([seed, 1]), wobble_deg),

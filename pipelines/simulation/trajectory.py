@@ -15,13 +15,14 @@ from scipy.spatial.transform import Rotation
 @dataclass(frozen=True)
 class Route:
     """A counter-clockwise rounded rectangle in the ground plane, starting mid-way along its south side,
-    heading east. Built from straight segments and quarter-circle arcs."""
+    heading east (or `start` metres further along). Built from straight segments and quarter-circle arcs."""
 
     xmin: float
     ymin: float
     xmax: float
     ymax: float
     corner_radius: float = 12.0  # [m]
+    start: float = 0.0  # arc length [m] from the south mid-point at which the drive starts
 
     def _segments(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per segment: start (x, y, heading) (S, 3), length (S,) [m], curvature (S,) [1/m]."""
@@ -47,7 +48,7 @@ class Route:
         [rad, counter-clockwise from world x] and curvatures (M,) [1/m, positive turning left]."""
         starts, lengths, curvatures = self._segments()
         ends = np.cumsum(lengths)
-        s = np.mod(s, ends[-1])
+        s = np.mod(s + self.start, ends[-1])
         k = np.minimum(np.searchsorted(ends, s, side="right"), len(lengths) - 1)
         state = _advance(starts[k], s - (ends[k] - lengths[k]), curvatures[k])
         return state[:, :2], state[:, 2], curvatures[k]
