@@ -1,0 +1,89 @@
+"""Map merging: two overlapping sessions join, non-overlapping ones are refused, bad inputs get one line."""
+
+import numpy as np
+import pytest
+
+from pipelines.merge import main
+from pipelines.simulation import CityLayout, SpinningLidar, build_city
+from pipelines.simulation.trajectory import Route, Trajectory
+from sandro_slam import Session, SlamConfig, merge_sessions
+from sandro_slam.pose_graph import odometry_covariance
+from sandro_slam.session import SessionEdge
+
+LAYOUT = CityLayout(blocks_x=6)
+LIDAR = SpinningLidar(columns=450)
+
+
+def _yaw(angle: float, x: float, y: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+    T[:2, 3] = x, y
+    return T
+
+
+def synthetic_session(name: str, loop, start: float, keyframes: int, seed: int = 0) -> tuple[Session, np.ndarray]:
+    """Keyframes every 10 m along a loop of the simulated city, each submap one static sweep in its own frame;
+    odometry edges from the truth; the session's world frame is its first keyframe's. Returns the true poses."""
+    world = build_city(seed, LAYOUT)
+    scene = world.raycasting_scene()
+    trajectory = Trajectory(Route(*loop, start=start), speed=10.0, accel_time=0.0)
+    truth = trajectory.poses(np.arange(keyframes) * 1.0)
+    submaps = {k: LIDAR.scan(scene, np.repeat(truth[k][None], LIDAR.columns, axis=0))[0] for k in range(keyframes)}
+    poses = {k: np.linalg.inv(truth[0]) @ truth[k] for k in range(keyframes)}
+    config = SlamConfig().graph
+    edges = [SessionEdge(k, k + 1, np.linalg.inv(poses[k]) @ poses[k + 1], odometry_covariance(10.0, config),
+                         "odometry", True) for k in range(keyframes - 1)]
+    session = Session(name, list(range(keyframes)), poses, submaps, edges, np.arange(keyframes) * 1.0,
+                      np.arange(keyframes), np.tile(np.eye(4), (keyframes, 1, 1)))
+    return session, truth
+
+
+@pytest.fixture(scope="module")
+def overlapping():
+    a, truth_a = synthetic_session("a", LAYOUT.loop, 0.0, 10)
+    b, truth_b = synthetic_session("b", (70.0, 0.0, 210.0, 70.0), 330.0, 10)
+    T_b = _yaw(2.0, 60.0, -40.0)  # an arbitrary frame for b: nothing may depend on it
+    return a, b.moved(T_b), np.linalg.inv(truth_a[0]) @ truth_b[0] @ np.linalg.inv(T_b)
+
+
+def test_two_overlapping_sessions_merge(overlapping):
+    a, b, T_a_b = overlapping
+    result = merge_sessions([a, b])
+    assert result.ok and result.joined == ["a", "b"]
+    T = result.T_merged_session["b"]
+    assert np.linalg.norm(T[:3, 3] - T_a_b[:3, 3]) < 0.2
+    assert np.degrees(np.arccos(np.clip((np.trace(T[:3, :3].T @ T_a_b[:3, :3]) - 1) / 2, -1, 1))) < 1.0
+    assert sum(loop.weight >= 0.5 for loop in result.loops) >= 3
+    assert result.covariance["b"].shape == (6, 6) and np.all(np.linalg.eigvalsh(result.covariance["b"]) > 0)
+    assert result.frame_poses["b"].shape == (10, 4, 4)
+
+
+def test_non_overlapping_sessions_are_refused():
+    a, _ = synthetic_session("a", (0.0, 0.0, 70.0, 70.0), 0.0, 8)
+    b, _ = synthetic_session("b", (280.0, -70.0, 350.0, 0.0), 0.0, 8)
+    result = merge_sessions([a, b.moved(_yaw(-1.0, 30.0, 20.0))])
+    assert not result.ok and "b" in result.refused and result.joined == ["a"]
+
+
+def test_missing_session_folder_is_one_line(tmp_path, capsys):
+    assert main([str(tmp_path / "nope"), str(tmp_path / "nope2"), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "no such session folder" in err and err.count("\n") == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_folder_of_another_tool_is_one_line(tmp_path, capsys):
+    for name in ("x", "y"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "metrics.json").write_text("{}")
+    assert main([str(tmp_path / "x"), str(tmp_path / "y"), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "not a sandro-slam results folder" in err and err.count("\n") == 1
+
+
+def test_non_empty_out_is_refused(tmp_path, capsys):
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "keep.txt").write_text("mine")
+    assert main([str(tmp_path), str(tmp_path), "--out", str(tmp_path / "out")]) == 2
+    assert "refusing to overwrite" in capsys.readouterr().err
+    assert (tmp_path / "out" / "keep.txt").read_text() == "mine"
