@@ -6,7 +6,7 @@ import argparse
 import sys
 from typing import NoReturn
 
-from pipelines import bench_posegraph, bench_registration, bench_slam
+from pipelines import bench_merge, bench_posegraph, bench_registration, bench_slam
 from pipelines.bench_common import UsageError
 
 
@@ -17,7 +17,8 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
-SUBCOMMANDS = {"registration": bench_registration, "slam": bench_slam, "posegraph": bench_posegraph}
+SUBCOMMANDS = {"registration": bench_registration, "slam": bench_slam, "posegraph": bench_posegraph,
+               "merge": bench_merge}
 
 
 def build_parser() -> argparse.ArgumentParser:
