@@ -1,7 +1,8 @@
-"""`sandro-demo`: register the bundled real LiDAR pair (small_gicp) with no initial guess.
+"""`sandro-demo`: the main job on built-in data: simulate a LiDAR bag (once, then cached), run sandro-slam on it.
 
-Until the SLAM demo exists, this is the README's main-job command: FPFH correspondences, SANDRO,
-errors against the ground truth, and the aligned clouds written as a PLY.
+The bag is `sandro-simulate`'s drive (a 32-beam spinning LiDAR through a city of repeated, mirror-symmetric blocks,
+with ground truth), cut to --frames scans: more than one lap, so the second lap closes loops on the first.
+Prints where the results and the plot are, and the ATE before and after loop closure.
 """
 
 from __future__ import annotations
@@ -10,64 +11,43 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
+from pipelines.bag_io import BagError
+from pipelines.simulate import ground_truth_path, simulate_bag
+from pipelines.slam import InputError, load_config, print_summary, run_bag
+from pipelines.trajectory_io import read_trajectory
 
-from pipelines.io_pointclouds import load_point_cloud
-from pipelines.synthetic import random_transform, transform_points
-
-DEFAULT_PAIR = Path(__file__).resolve().parents[1] / "tests" / "data" / "small_gicp"
+DEFAULT_CACHE = Path("results") / "demo-data"
+DEFAULT_OUT = Path("results") / "demo"
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="sandro-demo", description=__doc__.splitlines()[0])
-    parser.add_argument("--pair", type=Path, default=DEFAULT_PAIR,
-                        help="folder with source.ply, target.ply, T_target_source.txt")
-    parser.add_argument("--voxel", type=float, default=0.5, help="FPFH voxel size [m]")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random move of the source")
-    parser.add_argument("--out", type=Path, default=Path("results/demo"), help="output folder")
+    """Entry point; exit codes as sandro-slam's."""
+    parser = argparse.ArgumentParser(prog="sandro-demo", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=int, default=500, help="scans in the simulated bag (default 500, ~1.2 laps)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the simulated city and drive (default 0)")
+    parser.add_argument("--config", type=Path, help="SlamConfig YAML (default: configs/default.yaml's values)")
+    parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help=f"where the bag is kept ({DEFAULT_CACHE})")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"base results folder ({DEFAULT_OUT})")
     args = parser.parse_args(argv)
+    bag = args.cache / f"city_seed{args.seed}_{args.frames}scans.bag"
     try:
-        source = load_point_cloud(args.pair / "source.ply")
-        target = load_point_cloud(args.pair / "target.ply")
-        T_gt = np.loadtxt(args.pair / "T_target_source.txt").reshape(4, 4)
-    except (OSError, ValueError) as error:
-        print(f"sandro-demo: {error}", file=sys.stderr)
+        config = load_config(args.config)
+        if not (bag.is_file() and ground_truth_path(bag).is_file()):
+            print(f"simulating the demo bag {bag} (once) ...", flush=True)
+            args.cache.mkdir(parents=True, exist_ok=True)
+            simulate_bag(bag, "ros1", seed=args.seed, frames=args.frames, overwrite=True, progress=True)
+        print(f"sandro-slam {bag} --gt {ground_truth_path(bag)} --out {args.out}", flush=True)
+        folder, metrics = run_bag(bag, args.out, config, ground_truth=read_trajectory(ground_truth_path(bag)),
+                                  progress=True)
+    except (InputError, BagError, ValueError, OSError) as error:
+        print(f"sandro-demo: error: {error}", file=sys.stderr)
         return 2
-
-    from sandro_core import SandroConfig, register
-    from sandro_core.features import match_fpfh
-
-    # Move the source far away so that no initial guess can help.
-    T_moved_source = random_transform(np.random.default_rng(args.seed), max_translation=10.0)
-    moved = transform_points(T_moved_source, source)
-    T_true = T_gt @ np.linalg.inv(T_moved_source)
-
-    P, Q = match_fpfh(moved, target, args.voxel, source_viewpoint=T_moved_source[:3, 3])
-    register(P, Q, SandroConfig(noise_bound=args.voxel))  # the first call loads the compiled kernels
-    result = register(P, Q, SandroConfig(noise_bound=args.voxel))
-    T = result.transformation
-    rot_err = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3].T @ T_true[:3, :3]) - 1) / 2, -1, 1)))
-    trans_err = np.linalg.norm(T[:3, 3] - T_true[:3, 3])
-    print(f"{len(P)} FPFH correspondences, {len(result.inliers)} inliers, valid={result.valid}")
-    print(f"solver time {result.time_s * 1e3:.1f} ms; error {rot_err:.2f} deg, {trans_err:.3f} m")
-    print("rotation / translation std [deg, m]:",
-          np.round(np.degrees(np.sqrt(np.diag(result.covariance)[:3])), 3),
-          np.round(np.sqrt(np.diag(result.covariance)[3:]), 3))
-
-    import open3d as o3d
-
-    args.out.mkdir(parents=True, exist_ok=True)
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.vstack([target, transform_points(T, moved)])))
-    colors = np.zeros((len(target) + len(moved), 3))
-    colors[: len(target)] = [0.1, 0.4, 0.9]
-    colors[len(target):] = [0.9, 0.3, 0.1]
-    cloud.colors = o3d.utility.Vector3dVector(colors)
-    path = args.out / "aligned.ply"
-    tmp = path.with_suffix(".tmp.ply")
-    o3d.io.write_point_cloud(str(tmp), cloud)
-    tmp.replace(path)
-    print(f"aligned clouds (target blue, source orange): {path}")
-    return 0 if result.valid and rot_err < 10 and trans_err < 1 else 1
+    except KeyboardInterrupt:
+        print("sandro-demo: aborted", file=sys.stderr)
+        return 130
+    print_summary(folder, metrics)
+    return 0
 
 
 if __name__ == "__main__":
