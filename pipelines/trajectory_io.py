@@ -21,12 +21,7 @@ def write_tum(path: Path, timestamps: np.ndarray, poses: np.ndarray) -> None:
 
 def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(timestamps (N,), poses (N, 4, 4)) from a TUM file; ValueError if it is not one."""
-    try:
-        rows = np.loadtxt(path, comments="#", ndmin=2)
-    except ValueError as error:
-        raise ValueError(f"{path}: not a TUM trajectory ({error})") from None
-    if rows.shape[1] != 8 or len(rows) == 0:
-        raise ValueError(f"{path}: a TUM trajectory has 8 columns (t x y z qx qy qz qw), found {rows.shape[1]}")
+    rows = _rows(path, 8, "a TUM trajectory has 8 columns (t x y z qx qy qz qw)")
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
     poses[:, :3, :3] = Rotation.from_quat(rows[:, 4:8]).as_matrix()
     poses[:, :3, 3] = rows[:, 1:4]
@@ -41,15 +36,21 @@ def write_kitti(path: Path, poses: np.ndarray) -> None:
 
 def read_kitti(path: Path) -> np.ndarray:
     """(N, 4, 4) poses from a KITTI file (12 values per line); ValueError if it is not one."""
-    try:
-        rows = np.loadtxt(path, comments="#", ndmin=2)
-    except ValueError as error:
-        raise ValueError(f"{path}: not a KITTI trajectory ({error})") from None
-    if rows.shape[1] != 12 or len(rows) == 0:
-        raise ValueError(f"{path}: a KITTI trajectory has 12 values per line, found {rows.shape[1]}")
+    rows = _rows(path, 12, "a KITTI trajectory has 12 values per line")
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
     poses[:, :3, :] = rows.reshape(-1, 3, 4)
     return poses
+
+
+def _rows(path: Path, columns: int, expected: str) -> np.ndarray:
+    """The numbers of a whitespace-separated file as (N, columns); ValueError naming the file otherwise."""
+    try:
+        rows = np.loadtxt(path, comments="#", ndmin=2)
+    except ValueError as error:
+        raise ValueError(f"{path}: not a trajectory file ({error})") from None
+    if rows.shape[1] != columns or len(rows) == 0:
+        raise ValueError(f"{path}: {expected}, found {rows.shape[1]}")
+    return rows
 
 
 def read_trajectory(path: Path) -> tuple[np.ndarray | None, np.ndarray]:
