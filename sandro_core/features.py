@@ -31,7 +31,7 @@ def _check_viewpoint(viewpoint: np.ndarray | None, name: str) -> np.ndarray:
 
 
 def fpfh_features(
-    points: np.ndarray, voxel_size: float, viewpoint: np.ndarray
+    points: np.ndarray, voxel_size: float, viewpoint: np.ndarray, max_nn: int = FPFH_MAX_NN
 ) -> tuple[o3d.geometry.PointCloud, np.ndarray]:
     """Voxel-downsample `points` and compute FPFH descriptors.
 
@@ -41,6 +41,8 @@ def fpfh_features(
         viewpoint: (3,) sensor position in the frame of `points`. Normals are turned towards it: FPFH
             depends on the normals' signs, and unoriented normals take signs that change with the
             cloud's orientation (measured: a random rotation cut small_gicp's inliers from 35 to 10 %).
+        max_nn: at most this many neighbours within the FPFH radius enter a descriptor; its cost grows
+            linearly with it.
 
     Returns:
         the keypoints (K points with their oriented normals, in the frame of `points`) and their
@@ -53,7 +55,7 @@ def fpfh_features(
     )
     pcd.orient_normals_towards_camera_location(viewpoint)
     fpfh = o3d.pipelines.registration.compute_fpfh_feature(
-        pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=FPFH_RADIUS_FACTOR * voxel_size, max_nn=FPFH_MAX_NN)
+        pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=FPFH_RADIUS_FACTOR * voxel_size, max_nn=max_nn)
     )
     descriptors = np.asarray(fpfh.data).T
     keep = np.flatnonzero(np.any(descriptors != 0.0, axis=1))
@@ -98,12 +100,27 @@ def match_fpfh(
     return np.asarray(source_kp.points)[source_idx], np.asarray(target_kp.points)[target_idx]
 
 
-def mutual_matches(source_desc: np.ndarray, target_desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Index pairs (i, j) where target descriptor j is the nearest to source descriptor i and vice versa."""
+def mutual_matches(
+    source_desc: np.ndarray,
+    target_desc: np.ndarray,
+    source_tree: cKDTree | None = None,
+    target_tree: cKDTree | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i, j) where target descriptor j is the nearest to source descriptor i and vice versa.
+
+    `source_tree` / `target_tree`: KD-trees of the descriptors, when the caller keeps them (built here
+    otherwise). Only the targets some source chose are searched back, which gives the same pairs as a
+    full search both ways at about two thirds of the time.
+    """
     if len(source_desc) == 0 or len(target_desc) == 0:
         return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
     # Approximate search (within 1.5x the nearest distance) changes ~0.1 % of the matches, at half the time.
-    _, source_to_target = cKDTree(target_desc).query(source_desc, k=1, eps=0.5)
-    _, target_to_source = cKDTree(source_desc).query(target_desc, k=1, eps=0.5)
+    target_tree = cKDTree(target_desc) if target_tree is None else target_tree
+    source_tree = cKDTree(source_desc) if source_tree is None else source_tree
+    _, source_to_target = target_tree.query(source_desc, k=1, eps=0.5)
+    chosen = np.unique(source_to_target)
+    _, back = source_tree.query(target_desc[chosen], k=1, eps=0.5)
+    target_to_source = np.full(len(target_desc), -1)
+    target_to_source[chosen] = back
     mutual = np.flatnonzero(target_to_source[source_to_target] == np.arange(len(source_desc)))
     return mutual, source_to_target[mutual]

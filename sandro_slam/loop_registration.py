@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial import cKDTree
 
 from sandro_core import register
 from sandro_core.features import fpfh_features, mutual_matches
@@ -20,6 +21,7 @@ class SubmapDescription:
     keypoints: np.ndarray  # (K, 3) FPFH keypoints
     descriptors: np.ndarray  # (K, 33)
     cloud: o3d.geometry.PointCloud  # the keypoints with their normals, for ICP and the overlap check
+    tree: cKDTree  # of the descriptors, built once for every pair the keyframe takes part in
 
 
 @dataclass
@@ -37,8 +39,8 @@ class PairRegistration:
 
 def describe_submap(points: np.ndarray, config: LoopRegistrationConfig) -> SubmapDescription:
     """FPFH keypoints, descriptors and normals (oriented towards the keyframe origin) of a submap."""
-    cloud, descriptors = fpfh_features(points, config.fpfh_voxel, np.zeros(3))
-    return SubmapDescription(np.asarray(cloud.points), descriptors, cloud)
+    cloud, descriptors = fpfh_features(points, config.fpfh_voxel, np.zeros(3), config.fpfh_max_nn)
+    return SubmapDescription(np.asarray(cloud.points), descriptors, cloud, cKDTree(descriptors))
 
 
 def register_submaps(target: SubmapDescription, source: SubmapDescription,
@@ -46,7 +48,7 @@ def register_submaps(target: SubmapDescription, source: SubmapDescription,
     """Estimate T_target_source between two submaps and verify it: SANDRO on FPFH matches, then
     point-to-plane ICP on the keypoints, whose fitness is the overlap."""
     start = time.perf_counter()
-    source_idx, target_idx = mutual_matches(source.descriptors, target.descriptors)
+    source_idx, target_idx = mutual_matches(source.descriptors, target.descriptors, source.tree, target.tree)
     if len(source_idx) < max(3, config.min_inliers):
         return _rejected(f"{len(source_idx)} FPFH matches", start)
     result = register(source.keypoints[source_idx], target.keypoints[target_idx], config.sandro)
@@ -55,7 +57,8 @@ def register_submaps(target: SubmapDescription, source: SubmapDescription,
     T = result.transformation
     method = o3d.pipelines.registration.TransformationEstimationPointToPlane()
     if config.icp_refine:
-        icp = o3d.pipelines.registration.registration_icp(source.cloud, target.cloud, config.icp_max_distance, T, method)
+        icp = o3d.pipelines.registration.registration_icp(source.cloud, target.cloud, config.icp_max_distance, T,
+                                                          method)
         T, overlap = np.asarray(icp.transformation), icp.fitness
     else:
         overlap = o3d.pipelines.registration.evaluate_registration(

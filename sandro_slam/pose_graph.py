@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
+from scipy.stats import chi2
 
 from sandro_slam.config import GraphConfig
 
@@ -131,6 +132,12 @@ class PoseGraph:
     def estimate(self, key: int) -> np.ndarray:
         """The latest estimate of T_world_keyframe for `key`."""
         return self._estimate.atPose3(key).matrix()
+
+    def holds(self, loop: LoopFactor) -> bool:
+        """Whether `loop` already holds at the latest estimate: its whitened error is within the robust back
+        end's inlier threshold (the chi-square of 6 degrees of freedom at `inlier_probability`)."""
+        error = self.graph.at(loop.factor_index).error(self._estimate)  # half the squared whitened error
+        return error <= 0.5 * chi2.ppf(self.config.inlier_probability, 6)
 
     def rejected_loops(self) -> list[LoopFactor]:
         """Loops the robust back end weighted below 0.5 in the last optimisation."""

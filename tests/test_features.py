@@ -77,3 +77,20 @@ def test_bad_input_raises_value_error(source, target, voxel, message):
 def test_bad_viewpoint_raises_value_error():
     with pytest.raises(ValueError, match="source_viewpoint"):
         match_fpfh(np.ones((10, 3)), np.ones((10, 3)), 0.5, source_viewpoint=np.zeros(2))
+
+
+def test_mutual_matches_equal_a_full_search_both_ways():
+    from scipy.spatial import cKDTree
+
+    from sandro_core.features import mutual_matches
+
+    rng = np.random.default_rng(0)
+    source, target = rng.random((500, 33)), rng.random((700, 33))
+    _, forward = cKDTree(target).query(source, k=1, eps=0.5)
+    _, backward = cKDTree(source).query(target, k=1, eps=0.5)
+    expected = np.flatnonzero(backward[forward] == np.arange(len(source)))
+    for trees in [(None, None), (cKDTree(source), cKDTree(target))]:
+        source_idx, target_idx = mutual_matches(source, target, *trees)
+        np.testing.assert_array_equal(source_idx, expected)
+        np.testing.assert_array_equal(target_idx, forward[expected])
+    assert len(expected) > 0

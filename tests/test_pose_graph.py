@@ -119,3 +119,9 @@ def test_bad_loop_input():
     graph.add_pose(1, np.eye(4), 0, np.eye(6))
     with pytest.raises(ValueError, match="finite 6x6"):
         graph.add_loop(0, 1, np.eye(4), np.full((6, 6), np.nan))
+
+
+def test_a_loop_holds_only_when_the_estimate_already_satisfies_it():
+    graph, _, _, _, false_factors = _build("batch", "gnc_tls", n_false=6)
+    for loop in graph.loops:
+        assert graph.holds(loop) == (loop.factor_index not in false_factors)
