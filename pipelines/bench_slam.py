@@ -24,6 +24,7 @@ import gtsam
 import numpy as np
 
 from pipelines.bench_common import UsageError, default_out_dir, write_csv
+from pipelines.bench_slam_bags import bag_experiment
 from pipelines.kiss_slam_baseline import kiss_slam_available, run_kiss_slam
 from pipelines.simulation import simulate_sequence
 from pipelines.trajectory_io import write_tum
@@ -43,6 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--false-loop-ratio", type=float, default=0.3,
                         help="wrong loops added, as a share of the true ones")
     parser.add_argument("--no-kiss-slam", action="store_true", help="skip the KISS-SLAM baseline")
+    parser.add_argument("--no-bags", action="store_true",
+                        help="skip the runs from bags (each format, end to end) and the bag reading speed")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -80,6 +83,9 @@ def run(args: argparse.Namespace) -> int:
         metrics["fps_kiss_slam"] = n / seconds
         trajectories["KISS-SLAM"] = kiss_poses
     metrics.update(false_loop_experiment(result, truth, config.graph, args.false_loop_ratio, args.seed))
+    if not args.no_bags:
+        del frames  # the bag runs stream their frames
+        metrics.update(bag_experiment(out, config, args.seed, args.laps, args.frames))
 
     for name, poses in trajectories.items():
         write_tum(out / f"{name.replace(' ', '_')}.tum", result.timestamps, poses)
