@@ -9,7 +9,7 @@ all or nothing):
     trajectories/<name>.tum/.kitti  every frame's pose in the merged frame
     graph.g2o                       the merged keyframe graph (keys: gtsam symbols 'a'+session index, key)
     trajectories.png                top view of the merged trajectories with the inter-session loops
-    summary.json                    sessions, loops (with weights), timings
+    summary.json                    sessions, loops (with weights and free-space conflicts), timings
 When a session cannot be joined it says why, exits with 1 and writes nothing.
 """
 
@@ -159,6 +159,7 @@ def summary(result: MergeResult) -> dict:
     loops = [{"target": result.names[lp.target_session], "target_key": lp.target_key,
               "source": result.names[lp.source_session], "source_key": lp.source_key, "inliers": lp.inliers,
               "overlap": round(lp.overlap, 3), "found_by": lp.found_by, "voted": lp.voted,
+              "free_space_conflict": None if np.isnan(lp.conflict) else round(lp.conflict, 4),
               "weight": None if np.isnan(lp.weight) else round(lp.weight, 3)} for lp in result.loops]
     used = [lp for lp in result.loops if not np.isnan(lp.weight)]
     return {

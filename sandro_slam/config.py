@@ -81,6 +81,13 @@ class MergeConfig(StrictModel):
     guided_radius: float = Field(
         10.0, ge=0.0, description="once aligned, register keyframe pairs this close [m] (0: no guided search)"
     )
+    max_free_space_conflict: float = Field(
+        0.03, ge=0.0, le=1.0,
+        description="refuse a voted alignment whose agreeing loops put a median share above this of the submap "
+        "keypoints where the other session saw free space (aliasing; true overlaps about 0.003, aliased 0.09)",
+    )
+    free_space_voxel: float = Field(0.5, gt=0.0, description="voxel [m] of the free-space test")
+    conflict_loops: int = Field(12, ge=1, description="agreeing loops (most inliers first) the free-space test checks")
     map_voxel: float = Field(0.5, gt=0.0, description="voxel [m] of the merged map sandro-merge writes")
 
 

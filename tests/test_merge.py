@@ -1,4 +1,4 @@
-"""Map merging: two overlapping sessions join, non-overlapping ones are refused, bad inputs get one line."""
+"""Map merging: two overlapping sessions join, aliased non-overlapping ones are refused, bad inputs get one line."""
 
 import numpy as np
 import pytest
@@ -7,6 +7,7 @@ from pipelines.merge import main
 from pipelines.simulation import CityLayout, SpinningLidar, build_city
 from pipelines.simulation.trajectory import Route, Trajectory
 from sandro_slam import Session, SlamConfig, merge_sessions
+from sandro_slam.merge import free_space_conflict, free_voxels
 from sandro_slam.pose_graph import odometry_covariance
 from sandro_slam.session import SessionEdge
 
@@ -54,15 +55,37 @@ def test_two_overlapping_sessions_merge(overlapping):
     assert np.linalg.norm(T[:3, 3] - T_a_b[:3, 3]) < 0.2
     assert np.degrees(np.arccos(np.clip((np.trace(T[:3, :3].T @ T_a_b[:3, :3]) - 1) / 2, -1, 1))) < 1.0
     assert sum(loop.weight >= 0.5 for loop in result.loops) >= 3
+    conflicts = [loop.conflict for loop in result.loops if not np.isnan(loop.conflict)]
+    assert len(conflicts) >= 3 and np.median(conflicts) < SlamConfig().merge.max_free_space_conflict / 2
     assert result.covariance["b"].shape == (6, 6) and np.all(np.linalg.eigvalsh(result.covariance["b"]) > 0)
     assert result.frame_poses["b"].shape == (10, 4, 4)
 
 
-def test_non_overlapping_sessions_are_refused():
+def test_aliased_non_overlapping_sessions_are_refused():
+    """Around blocks (1, 1) and (5, 1): the same block template 280 m apart, never within sensor range of each
+    other. The loops agree on the aliased shift; the free-space test refuses it."""
     a, _ = synthetic_session("a", (0.0, 0.0, 70.0, 70.0), 0.0, 8)
-    b, _ = synthetic_session("b", (280.0, -70.0, 350.0, 0.0), 0.0, 8)
+    b, _ = synthetic_session("b", (280.0, 0.0, 350.0, 70.0), 0.0, 8)
     result = merge_sessions([a, b.moved(_yaw(-1.0, 30.0, 20.0))])
-    assert not result.ok and "b" in result.refused and result.joined == ["a"]
+    assert not result.ok and result.joined == ["a"] and "free space" in result.refused["b"]
+
+
+def test_free_space_conflict_sees_an_object_where_the_street_was_empty():
+    """Target: a wall 10 m ahead over flat ground 1.8 m below the sensor. The wall itself does not conflict;
+    a pole 5 m ahead, where the target's rays to the wall passed, does."""
+    y, z = np.meshgrid(np.arange(-10.0, 10.0, 0.5), np.arange(-1.8, 5.0, 0.5))
+    wall = np.c_[np.full(y.size, 10.0), y.ravel(), z.ravel()]
+    x, y = np.meshgrid(np.arange(-10.0, 10.0, 0.5), np.arange(-10.0, 10.0, 0.5))
+    ground = np.c_[x.ravel(), y.ravel(), np.full(x.size, -1.8)]
+    points = np.vstack([wall, ground])
+    normals = np.vstack([np.tile([-1.0, 0.0, 0.0], (len(wall), 1)), np.tile([0.0, 0.0, 1.0], (len(ground), 1))])
+    free, plane = free_voxels(points, normals, 0.5)
+    assert plane is not None and abs(plane[2] + 1.8) < 1e-6
+    hits, tested = free_space_conflict(free, plane, wall, np.eye(4), 0.5)
+    assert hits == 0 and tested > 0.8 * len(wall)
+    pole = np.c_[np.full(8, 5.0), np.zeros(8), np.linspace(-1.0, 2.5, 8)]
+    hits, tested = free_space_conflict(free, plane, pole, np.eye(4), 0.5)
+    assert tested == 8 and hits >= 6
 
 
 def test_missing_session_folder_is_one_line(tmp_path, capsys):
