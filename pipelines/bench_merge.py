@@ -3,12 +3,27 @@
 Sessions are sandro-slam runs (OfflineSlam) over simulated drives in one seeded city, each moved by a random
 rigid transform (up to 100 m, any yaw) so that no alignment can leak in; computed once per run.
     two:    A drives the default loop around blocks (1,1)-(2,1); B the loop one block east, starting 100 m
-            along it: they share two 70 m streets. Session-to-session transform error, B's ATE in the merged
-            frame (one SE3 alignment of all merged trajectories) against its single-session ATE, merge time.
+            along it: they share two 70 m streets.
     three:  the same plus C on the loop around blocks (1,1)-(1,2), starting 50 m along it.
-    refuse: --trials seeds of a wider city (8 blocks east-west); A drives around block (1,1), B around block
-            (5,1), 280 m away: the same block template (the city repeats it every two blocks), never seen
-            from A. A merge is a failure.
+    refuse: --trials seeds (each its own city, template and furniture) of a wider city (8 blocks east-west);
+            A drives around block (1,1), B around block (5,1), both from the same point of the block: the same
+            block template (the city repeats it every two blocks), so every street B sees looks like one A
+            saw, up to the per-block changes and the street furniture. The sessions do not overlap: their
+            trajectories stay 210 m apart (x <= 70 m + lane offset against x >= 280 m - lane offset), more than
+            twice the sensor range (100 m; submaps keep 30 m), so no place is within range of both. A merge
+            is a failure.
+Metrics of `two` and `three`, per session S after the first (A):
+    transform_error_{m,deg}_S: T_merged_session[S] against the truth, each session's frame being its first
+        pose (the issue's definition). It holds both sessions' own SLAM errors between their first pose and
+        the rest of their map (first_pose_error_*, below), which no merge can undo.
+    map_transform_error_{m,deg}_S: the same between the sessions' maps: estimate = the rigid fit of S's own
+        trajectory onto its merged one; truth = each session's own trajectory fitted rigidly to ground truth.
+    overlap_error_{m,deg}_S: median error of S's merged pose relative to the nearest (within 5 m, true
+        positions) merged pose of A: how well the maps are registered where they overlap.
+    first_pose_error_{m,deg}_S: the session's first pose against where the rigid fit of its own trajectory
+        to ground truth puts it (single-session SLAM, no merge).
+    ate_single_S, ate_merged_S, ate_ratio_S: ATE of S's own run; ATE in the merged frame (one SE3 alignment
+        of all merged trajectories together); their ratio. merge_seconds: merge_sessions alone.
 Writes metrics.json, metrics.csv and merge.png into --out.
 """
 
@@ -135,13 +150,39 @@ def _accuracy(sessions, result) -> dict:
         out[f"ate_single_{name}"] = ate(session.frame_poses(), truth)
         out[f"ate_merged_{name}"] = float(np.sqrt(np.mean(np.sum(error**2, axis=1))))
         out[f"ate_ratio_{name}"] = out[f"ate_merged_{name}"] / out[f"ate_single_{name}"]
+        fit = align_se3(session.frame_poses(), truth)
+        _put(out, "first_pose_error", name, pose_errors(fit, np.linalg.inv(T_frame_world)))
         if session is first:
             continue
         T_true = T_first @ np.linalg.inv(T_frame_world)
-        rotation, translation = pose_errors(result.T_merged_session[name], T_true)
-        out[f"transform_error_m_{name}"] = translation
-        out[f"transform_error_deg_{name}"] = rotation
+        _put(out, "transform_error", name, pose_errors(result.T_merged_session[name], T_true))
+        fit_first = align_se3(first.frame_poses(), sessions[0][1])
+        _put(out, "map_transform_error", name, pose_errors(align_se3(session.frame_poses(), result.frame_poses[name]),
+                                                           np.linalg.inv(fit_first) @ fit))
+        _put(out, "overlap_error", name, _overlap_error(result.frame_poses[first.name], sessions[0][1],
+                                                        result.frame_poses[name], truth))
+    tested = [lp.conflict for lp in result.loops if not np.isnan(lp.conflict)]
+    out["free_space_conflict_median"] = float(np.median(tested)) if tested else None
     return out
+
+
+def _put(out: dict, metric: str, name: str, errors: tuple[float, float]) -> None:
+    out[f"{metric}_m_{name}"], out[f"{metric}_deg_{name}"] = errors[1], errors[0]
+
+
+def _overlap_error(merged_a: np.ndarray, truth_a: np.ndarray, merged_s: np.ndarray, truth_s: np.ndarray,
+                   radius: float = 5.0) -> tuple[float, float]:
+    """Median (rotation [deg], translation [m]) error of S's poses relative to A's nearest pose within
+    `radius` [m] (true positions): the registration error where the sessions overlap; nan without overlap."""
+    from scipy.spatial import cKDTree
+
+    distance, nearest = cKDTree(truth_a[:, :3, 3]).query(truth_s[:, :3, 3])
+    close = np.flatnonzero(distance < radius)
+    if len(close) == 0:
+        return float("nan"), float("nan")
+    errors = [pose_errors(np.linalg.inv(merged_a[nearest[f]]) @ merged_s[f],
+                          np.linalg.inv(truth_a[nearest[f]]) @ truth_s[f]) for f in close]
+    return tuple(float(v) for v in np.median(errors, axis=0))
 
 
 def _refusals(cache: _Sessions, args: argparse.Namespace, config: SlamConfig) -> dict:
@@ -152,14 +193,18 @@ def _refusals(cache: _Sessions, args: argparse.Namespace, config: SlamConfig) ->
         a, _, _ = cache.get("A", seed, args.trial_frames, APART["A"], WIDE)
         b, _, _ = cache.get("B", seed, args.trial_frames, APART["B"], WIDE)
         result = merge_sessions([a, b], config)
-        agreeing = sum(lp.voted for lp in result.loops)
+        tested = [lp.conflict for lp in result.loops if not np.isnan(lp.conflict)]
         trials.append({"seed": seed, "refused": not result.ok, "verified_loops": len(result.loops),
-                       "voted_loops": agreeing, "reason": result.refused.get("B", ""),
-                       "merge_seconds": result.timings["total"]})
+                       "agreeing_loops_tested": len(tested),
+                       "free_space_conflict_median": float(np.median(tested)) if tested else None,
+                       "reason": result.refused.get("B", ""), "merge_seconds": result.timings["total"]})
+    medians = [t["free_space_conflict_median"] for t in trials if t["free_space_conflict_median"] is not None]
     return {"trials": trials, "refused": sum(t["refused"] for t in trials), "of": len(trials),
             "frames_per_session": args.trial_frames,
             "max_verified_loops": max((t["verified_loops"] for t in trials), default=0),
-            "max_voted_loops": max((t["voted_loops"] for t in trials), default=0)}
+            "trials_reaching_the_free_space_test": len(medians),
+            "min_free_space_conflict_median": min(medians, default=None),
+            "max_free_space_conflict_median": max(medians, default=None)}
 
 
 def _flatten(metrics: dict, prefix: str = "") -> list[dict]:
