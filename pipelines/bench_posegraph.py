@@ -20,8 +20,9 @@ the first pose):
         reference positions from their centroid), cost_rel = |clean cost at the result - reference cost| /
         reference cost; for GNC the precision and recall of rejecting the injected loops (weight < 0.5)
         and the number of real loops rejected. within_1pct: pose_rel <= 1 % and cost_rel <= 1 %.
-Writes into --out: results.csv (one row per graph, info scale, rate, initial values and method), reference.csv,
-posegraph.png (translation RMSE per method and rate, one panel per graph) and settings.json.
+Writes into --out: results.csv (one row per graph, info scale, rate, initial values and method; rewritten after
+every run, so a long run can be read while it goes), reference.csv, posegraph.png (translation RMSE per method
+and rate, one panel per graph) and settings.json.
 """
 
 from __future__ import annotations
@@ -466,6 +467,7 @@ def run(args: argparse.Namespace) -> int:
     except OSError as error:
         raise UsageError(f"--out {out}: {error}") from None
     problems = [load_problem(Path(settings.data) / f"{name}.g2o", settings.max_poses) for name in settings.graphs]
+    (out / "settings.json").write_text(json.dumps(asdict(settings), indent=2) + "\n")
 
     references, rows = [], []
     runs = len(settings.info_scales) * len(settings.rates) * len(settings.inits) * len(settings.methods)
@@ -482,6 +484,7 @@ def run(args: argparse.Namespace) -> int:
                     "cost_clean": ref.cost, "variance_factor": ref.variance_factor, "scale_m": ref.scale,
                     "time_s": elapsed,
                 })  # fmt: skip
+                write_csv(out / "reference.csv", references, REFERENCE_FIELDS)
                 for rate in settings.rates:
                     graph, known = build_graph(problem, inject_outliers(problem, rate, settings.seed))
                     for init in settings.inits:
@@ -493,12 +496,10 @@ def run(args: argparse.Namespace) -> int:
                                 "init": init, "method": method,
                             }  # fmt: skip
                             rows.append({**labels, **run_one(problem, ref, method, graph, initials[init], known)})
+                            write_csv(out / "results.csv", rows, RESULT_FIELDS)  # so far: a long run can be read
                             progress.update()
 
-    write_csv(out / "reference.csv", references, REFERENCE_FIELDS)
-    write_csv(out / "results.csv", rows, RESULT_FIELDS)
     plot(rows, references, out / "posegraph.png")
-    (out / "settings.json").write_text(json.dumps(asdict(settings), indent=2) + "\n")
     print(format_table(references, rows))
     print(f"results in {out}")
     return 0

@@ -35,6 +35,12 @@ def between_factor(key_a: int, key_b: int, T_a_b: np.ndarray, covariance: np.nda
     return gtsam.BetweenFactorPose3(key_a, key_b, gtsam.Pose3(T_a_b), gtsam.noiseModel.Gaussian.Covariance(covariance))
 
 
+GNC_LM_ITERATIONS = 5  # LM iterations per GNC step (gtsam: 100)
+GNC_LM_RELATIVE_TOL = 1e-3  # LM relative cost decrease that ends a GNC step (gtsam: 1e-5)
+GNC_MU_STEP = {"gnc_tls": 2.0, "gnc_gm": 1.4}  # factor on GNC's control parameter per step (gtsam: 1.4; GM at
+# 2.0 rejected real loops of kitti_00)
+
+
 def robust_optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, known_inliers: list[int],
                     config: GraphConfig) -> tuple[gtsam.Values, np.ndarray]:
     """Optimise `graph` with the configured robust back end; returns the values and a weight per factor
@@ -42,12 +48,25 @@ def robust_optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, kn
 
     gnc_tls / gnc_gm: gtsam's GncLMOptimizer, with `known_inliers` (prior and odometry factor indices)
     never down-weighted and the inlier threshold at `inlier_probability` of the chi-square of each factor's
-    dimension. none: plain Levenberg-Marquardt, every weight 1.
+    dimension. GNC runs a short LM (`GNC_LM_ITERATIONS`, relative tolerance `GNC_LM_RELATIVE_TOL`) per step of
+    its control parameter, which changes by `GNC_MU_STEP`: each step starts from the last, so the steps together
+    still converge (TLS on sphere2500 with 10 % outlier loops: the same result as gtsam's defaults of 100
+    iterations, 1e-5 and 1.4, 4x faster). GM ends when its control parameter reaches 1, not on gtsam's relative
+    cost test, which stopped it in its first, near-convex steps with every weight still 1.
+    none: plain Levenberg-Marquardt, every weight 1.
     """
     if config.robust == "none":
         return gtsam.LevenbergMarquardtOptimizer(graph, initial).optimize(), np.ones(graph.size())
-    params = gtsam.GncLMParams()
-    params.setLossType(gtsam.GncLossType.TLS if config.robust == "gnc_tls" else gtsam.GncLossType.GM)
+    lm_params = gtsam.LevenbergMarquardtParams()
+    lm_params.setMaxIterations(GNC_LM_ITERATIONS)
+    lm_params.setRelativeErrorTol(GNC_LM_RELATIVE_TOL)
+    params = gtsam.GncLMParams(lm_params)
+    params.setLambdaStep(GNC_MU_STEP[config.robust])
+    if config.robust == "gnc_tls":
+        params.setLossType(gtsam.GncLossType.TLS)
+    else:
+        params.setLossType(gtsam.GncLossType.GM)
+        params.setRelativeCostTol(0.0)
     params.setKnownInliers(known_inliers)
     optimizer = gtsam.GncLMOptimizer(graph, initial, params)
     optimizer.setInlierCostThresholdsAtProbability(config.inlier_probability)
