@@ -23,7 +23,9 @@ Metrics of `two` and `three`, per session S after the first (A):
     first_pose_error_{m,deg}_S: the session's first pose against where the rigid fit of its own trajectory
         to ground truth puts it (single-session SLAM, no merge).
     ate_single_S, ate_merged_S, ate_ratio_S: ATE of S's own run; ATE in the merged frame (one SE3 alignment
-        of all merged trajectories together); their ratio. merge_seconds: merge_sessions alone.
+        of all merged trajectories together); their ratio. merge_seconds: merge_sessions alone;
+        sandro_merge_seconds_from_folders (two): the sandro-merge command on A and B written as results
+        folders (out/cli-*/sessions/), reading, merging and writing everything (out/cli-*/merged/).
 Writes metrics.json, metrics.csv and merge.png into --out.
 """
 
@@ -117,6 +119,8 @@ def run(args: argparse.Namespace) -> int:
         result = merge_sessions([s for s, _, _ in sessions], config)
         metrics[part] = _accuracy(sessions, result)
         plots[part] = (sessions, result)
+        if part == "two":
+            metrics[part]["sandro_merge_seconds_from_folders"] = _time_cli(out, [s for s, _, _ in sessions])
     if "refuse" not in skip:
         metrics["refuse"] = _refusals(cache, args, config)
     metrics["slam_seconds_total"] = cache.slam_seconds
@@ -183,6 +187,26 @@ def _overlap_error(merged_a: np.ndarray, truth_a: np.ndarray, merged_s: np.ndarr
     errors = [pose_errors(np.linalg.inv(merged_a[nearest[f]]) @ merged_s[f],
                           np.linalg.inv(truth_a[nearest[f]]) @ truth_s[f]) for f in close]
     return tuple(float(v) for v in np.median(errors, axis=0))
+
+
+def _time_cli(out: Path, sessions: list[Session]) -> float:
+    """Seconds `sandro-merge` takes on the sessions written as results folders (reading, merging, writing
+    every output into out/cli-*/merged)."""
+    import tempfile
+
+    from pipelines.merge import main
+    from pipelines.session_io import save_session
+
+    folder = Path(tempfile.mkdtemp(prefix="cli-", dir=out))
+    for session in sessions:
+        (folder / "sessions" / session.name).mkdir(parents=True)
+        save_session(folder / "sessions" / session.name, session)
+    tic = time.perf_counter()
+    code = main([str(folder / "sessions" / s.name) for s in sessions] + ["--out", str(folder / "merged")])
+    seconds = time.perf_counter() - tic
+    if code != 0:
+        raise RuntimeError(f"sandro-merge on the written sessions exited with {code}")
+    return seconds
 
 
 def _refusals(cache: _Sessions, args: argparse.Namespace, config: SlamConfig) -> dict:

@@ -30,7 +30,12 @@ VERSION = 1
 def write_session(folder: Path, result: SlamResult) -> None:
     """Write `folder`/session/ (atomically, as a whole) from a SLAM result; the session is named after `folder`."""
     folder = Path(folder)
-    session = Session.from_result(result, folder.resolve().name)
+    save_session(folder, Session.from_result(result, folder.resolve().name))
+
+
+def save_session(folder: Path, session: Session) -> None:
+    """Write `folder`/session/ (atomically, as a whole) from a Session, under its own name."""
+    folder = Path(folder)
     with atomic_dir(folder / "session") as out:
         out.mkdir()
         (out / "submaps").mkdir()

@@ -247,8 +247,8 @@ def _fits(sessions: list[Session], loop: InterSessionLoop, T_i_j: np.ndarray, me
     T = _implied(sessions, loop)
     angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3].T @ T_i_j[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
     p = sessions[loop.source_session].keyframe_poses[loop.source_key][:, 3]
-    return angle <= merge.consistency_rotation_deg and \
-        np.linalg.norm((T @ p - T_i_j @ p)[:3]) <= merge.consistency_translation
+    return bool(angle <= merge.consistency_rotation_deg
+                and np.linalg.norm((T @ p - T_i_j @ p)[:3]) <= merge.consistency_translation)
 
 
 def _agreeing(sessions: list[Session], loops: list[InterSessionLoop],

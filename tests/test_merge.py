@@ -1,9 +1,11 @@
 """Map merging: two overlapping sessions join, aliased non-overlapping ones are refused, bad inputs get one line."""
 
+import json
+
 import numpy as np
 import pytest
 
-from pipelines.merge import main
+from pipelines.merge import main, summary
 from pipelines.simulation import CityLayout, SpinningLidar, build_city
 from pipelines.simulation.trajectory import Route, Trajectory
 from sandro_slam import Session, SlamConfig, merge_sessions
@@ -59,6 +61,7 @@ def test_two_overlapping_sessions_merge(overlapping):
     assert len(conflicts) >= 3 and np.median(conflicts) < SlamConfig().merge.max_free_space_conflict / 2
     assert result.covariance["b"].shape == (6, 6) and np.all(np.linalg.eigvalsh(result.covariance["b"]) > 0)
     assert result.frame_poses["b"].shape == (10, 4, 4)
+    json.dumps(summary(result))  # plain Python types only (guided loops once carried numpy booleans)
 
 
 def test_aliased_non_overlapping_sessions_are_refused():
