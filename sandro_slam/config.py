@@ -43,9 +43,12 @@ class LoopRegistrationConfig(StrictModel):
     sandro: SandroConfig = Field(default_factory=lambda: SandroConfig(noise_bound=1.0))
     icp_refine: bool = Field(True, description="point-to-plane ICP from the SANDRO transform")
     icp_max_distance: float = Field(1.0, gt=0.0, description="ICP correspondence distance [m]")
+    icp_voxel: float = Field(
+        0.5, gt=0.0, description="voxel [m] of the source submap points ICP aligns onto the target's keypoints"
+    )
     min_inliers: int = Field(20, ge=3, description="SANDRO inliers a loop needs")
     min_overlap: float = Field(
-        0.3, ge=0.0, le=1.0, description="share of source keypoints within icp_max_distance of the target's"
+        0.3, ge=0.0, le=1.0, description="share of those source points within icp_max_distance of target keypoints"
     )
 
 
