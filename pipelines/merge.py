@@ -23,6 +23,7 @@ from typing import NoReturn
 
 import numpy as np
 
+from pipelines.slam import InputError, load_config
 from sandro_slam import MergeResult, Session, SlamConfig, merge_sessions
 
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
@@ -52,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("at least two sessions are needed")
         if args.out.exists() and (not args.out.is_dir() or any(args.out.iterdir())):
             raise ValueError(f"{args.out} exists and is not an empty folder: refusing to overwrite it")
-        config = _load_config(args.config)
+        config = load_config(args.config)
         args.out.parent.mkdir(parents=True, exist_ok=True)
         from pipelines.atomic_write import atomic_dir
 
@@ -67,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     except _Refused as refused:
         print(f"sandro-merge: refused, nothing written: {refused}", file=sys.stderr)
         return 1
-    except (ValueError, OSError) as error:
+    except (InputError, ValueError, OSError) as error:
         print(f"sandro-merge: error: {_one_line(error)}", file=sys.stderr)
         return 2
     print_summary(args.out, result)
@@ -81,23 +82,6 @@ class _Refused(Exception):
 def _one_line(error: Exception) -> str:
     text = str(error).strip() or type(error).__name__
     return text.splitlines()[0]
-
-
-def _load_config(path: Path | None) -> SlamConfig:
-    if path is None:
-        return SlamConfig()
-    if not path.is_file():
-        raise ValueError(f"no such config file: {path}")
-    import pydantic
-    import yaml
-
-    try:
-        return SlamConfig.from_yaml(path)
-    except yaml.YAMLError as error:
-        raise ValueError(f"{path}: not valid YAML ({_one_line(error)})") from None
-    except pydantic.ValidationError as error:
-        first = error.errors()[0]
-        raise ValueError(f"{path}: {'.'.join(str(p) for p in first['loc'])}: {first['msg']}") from None
 
 
 def _is_bag(path: Path) -> bool:
