@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections import Counter
 from pathlib import Path
 
 import gtsam
@@ -73,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         "fps_sandro_slam": n / result.timings["total"],
         "loop_closure_share_of_odometry": result.timings["loop_closure"] / result.timings["odometry"],
         "timings_s": result.timings,
-        "loops_found_by": _count(loop.found_by for loop in result.loops),
+        "loops_found_by": dict(Counter(loop.found_by for loop in result.loops)),
     }
     trajectories = {"ground truth": truth, "KISS-ICP": result.odometry_poses, "sandro-slam": result.poses}
     if not args.no_kiss_slam and kiss_slam_available():
@@ -129,13 +130,6 @@ def false_loop_experiment(result: SlamResult, truth: np.ndarray, graph_config: G
 
 def _is_loop(factor_index: int, result: SlamResult) -> bool:
     return any(loop.factor.factor_index == factor_index for loop in result.loops)
-
-
-def _count(values) -> dict[str, int]:
-    counts: dict[str, int] = {}
-    for value in values:
-        counts[value] = counts.get(value, 0) + 1
-    return counts
 
 
 def _print(metrics: dict) -> None:

@@ -22,6 +22,7 @@ import json
 import signal
 import sys
 import time
+from collections import Counter
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import NoReturn
@@ -135,19 +136,22 @@ def run_bag(bag: Path, out: Path, config: SlamConfig, topic: str | None = None,
                 "bag": str(bag), "topic": scans.topic, "messages": len(scans), "interrupted": stop.requested,
                 **_run_metrics(result, wall, reading.seconds),
             }  # fmt: skip
+            truth = None
             if ground_truth is not None:
-                metrics["ground_truth"] = evaluate(result, *ground_truth)
+                truth = match_ground_truth(result, *ground_truth)
+                metrics["ground_truth"] = evaluate(result, *truth)
         except BaseException:
             folder.rmdir()  # nothing written yet
             raise
-    write_results(folder, result, config, metrics, ground_truth, map_voxel)
+    write_results(folder, result, config, metrics, truth, map_voxel)
     link_latest(folder)
     return folder, metrics
 
 
 def write_results(folder: Path, result: SlamResult, config: SlamConfig, metrics: dict,
-                  ground_truth: tuple[np.ndarray | None, np.ndarray] | None, map_voxel: float) -> None:
-    """Every output file of a run (see the module docstring), each written atomically."""
+                  truth: tuple[np.ndarray, np.ndarray] | None, map_voxel: float) -> None:
+    """Every output file of a run (see the module docstring), each written atomically; `truth` is the ground
+    truth as `match_ground_truth` returns it."""
     from pipelines.session_io import write_session
     from pipelines.slam_outputs import plot_trajectories, write_graph, write_loops, write_map, write_trajectories
 
@@ -155,10 +159,6 @@ def write_results(folder: Path, result: SlamResult, config: SlamConfig, metrics:
     write_graph(folder / "graph.g2o", result)
     write_loops(folder / "loops.csv", result)
     metrics["map_points"] = write_map(folder / "map.ply", result, map_voxel)
-    truth = None
-    if ground_truth is not None:
-        mask, poses = match_ground_truth(result, *ground_truth)
-        truth = (mask, poses) if mask.sum() >= 3 else None
     plot_trajectories(folder / "trajectory.png", result, truth)
     with atomic_path(folder / "config.yaml") as tmp:
         config.to_yaml(tmp)
@@ -179,9 +179,9 @@ def match_ground_truth(result: SlamResult, times: np.ndarray | None,
     return mask, poses[indices[mask]]
 
 
-def evaluate(result: SlamResult, times: np.ndarray | None, poses: np.ndarray) -> dict:
-    """ATE [m] (RMSE after an SE3 alignment) and RPE [m] over 10 frames, before and after loop closure."""
-    mask, truth = match_ground_truth(result, times, poses)
+def evaluate(result: SlamResult, mask: np.ndarray, truth: np.ndarray) -> dict:
+    """ATE [m] (RMSE after an SE3 alignment) and RPE [m] over 10 frames, before and after loop closure, on the
+    frames in `mask` against their ground-truth poses `truth` (as `match_ground_truth` returns them)."""
     if mask.sum() < 3:
         raise InputError("the ground truth covers fewer than 3 of the processed scans (check its times or format)")
     metrics = {"frames_matched": int(mask.sum())}
@@ -195,9 +195,6 @@ def _run_metrics(result: SlamResult, wall: float, read_seconds: float) -> dict:
     frames = len(result.timestamps)
     span = float(result.timestamps[-1] - result.timestamps[0]) if frames > 1 else 0.0
     accepted = sum(loop.weight >= 0.5 for loop in result.loops)
-    found_by: dict[str, int] = {}
-    for loop in result.loops:
-        found_by[loop.found_by] = found_by.get(loop.found_by, 0) + 1
     return {
         "frames": frames,
         "frames_skipped": len(result.skipped_frames),
@@ -205,7 +202,7 @@ def _run_metrics(result: SlamResult, wall: float, read_seconds: float) -> dict:
         "loops_verified": len(result.loops),
         "loops_accepted": accepted,
         "loops_rejected": len(result.loops) - accepted,
-        "loops_found_by": found_by,
+        "loops_found_by": dict(Counter(loop.found_by for loop in result.loops)),
         "wall_s": wall,
         "frames_per_s": frames / wall if wall > 0 else float("nan"),
         "realtime_factor": span / wall if wall > 0 else float("nan"),

@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 from pipelines.atomic_write import atomic_path
 from pipelines.g2o_io import write_g2o
 from pipelines.trajectory_io import write_kitti, write_tum
+from pipelines.trajectory_metrics import align_se3, ate
 from sandro_slam import SlamResult
 
 LOOP_FIELDS = [
@@ -83,8 +84,6 @@ def plot_trajectories(path: Path, result: SlamResult, truth: tuple[np.ndarray, n
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pipelines.trajectory_metrics import align_se3
-
     if truth is None:
         fig, ax = plt.subplots(figsize=(9, 8))
     else:
@@ -117,8 +116,6 @@ def plot_trajectories(path: Path, result: SlamResult, truth: tuple[np.ndarray, n
 
 def _plot_errors(ax, result: SlamResult, mask: np.ndarray, truth: np.ndarray) -> None:
     """Position error [m] over time after an SE3 alignment to the ground truth, before and after loop closure."""
-    from pipelines.trajectory_metrics import align_se3, ate
-
     t = result.timestamps[mask] - result.timestamps[0]
     for name, poses, color in (("odometry", result.odometry_poses[mask], "tab:orange"),
                                ("after loop closure", result.poses[mask], "tab:blue")):
