@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipelines.atomic_write import atomic_path
 from pipelines.bench_common import UsageError, default_out_dir, pose_errors, write_csv
 from pipelines.simulation import CityLayout, simulate_sequence
 from pipelines.trajectory_metrics import align_se3, ate
@@ -263,7 +264,6 @@ def _plot(path: Path, plots: dict) -> None:
         ax.set_title(f"{part}: {'merged' if result.ok else 'refused'}")
         ax.legend()
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
-    tmp.replace(path)

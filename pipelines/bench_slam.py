@@ -24,6 +24,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
+from pipelines.atomic_write import atomic_path
 from pipelines.bench_common import UsageError, default_out_dir, write_csv
 from pipelines.bench_slam_bags import bag_experiment
 from pipelines.kiss_slam_baseline import kiss_slam_available, run_kiss_slam
@@ -167,7 +168,6 @@ def _plot(path: Path, trajectories: dict[str, np.ndarray], result: SlamResult) -
     errors.set_ylabel("position error after SE3 alignment [m]")
     errors.legend()
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=120)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120)
     plt.close(fig)
-    tmp.replace(path)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipelines.atomic_write import atomic_path
 from pipelines.io_pointclouds import load_point_cloud
 from pipelines.synthetic import random_transform, transform_points
 
@@ -62,9 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     colors[len(target):] = [0.9, 0.3, 0.1]
     cloud.colors = o3d.utility.Vector3dVector(colors)
     path = args.out / "aligned.ply"
-    tmp = path.with_suffix(".tmp.ply")
-    o3d.io.write_point_cloud(str(tmp), cloud)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        o3d.io.write_point_cloud(str(tmp), cloud)
     print(f"aligned clouds (target blue, source orange): {path}")
     return 0 if result.valid and rot_err < 10 and trans_err < 1 else 1
 
