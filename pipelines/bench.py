@@ -8,6 +8,7 @@ from typing import NoReturn
 
 from pipelines import bench_merge, bench_posegraph, bench_registration, bench_slam
 from pipelines.bench_common import UsageError
+from pipelines.slam import InputError
 
 
 class _Parser(argparse.ArgumentParser):
@@ -39,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return SUBCOMMANDS[args.command].run(args)
-    except UsageError as error:
+    except (UsageError, InputError) as error:
         print(f"sandro-bench {args.command}: error: {error}", file=sys.stderr)
         return 2
 

@@ -41,6 +41,7 @@ import numpy as np
 from pipelines.atomic_write import atomic_path
 from pipelines.bench_common import UsageError, default_out_dir, pose_errors, write_csv
 from pipelines.simulation import CityLayout, simulate_sequence
+from pipelines.slam import load_config
 from pipelines.trajectory_metrics import align_se3, ate
 from sandro_slam import OfflineSlam, Session, SlamConfig, merge_sessions
 
@@ -101,9 +102,7 @@ def _random_transform(rng: np.random.Generator) -> np.ndarray:
 
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark; returns the exit code."""
-    if args.config is not None and not args.config.is_file():
-        raise UsageError(f"no such config file: {args.config}")
-    config = SlamConfig.from_yaml(args.config) if args.config else SlamConfig()
+    config = load_config(args.config)
     skip = {part.strip() for part in args.skip.split(",") if part.strip()}
     if skip - {"two", "three", "refuse"}:
         raise UsageError(f"unknown parts to skip: {','.join(sorted(skip - {'two', 'three', 'refuse'}))}")

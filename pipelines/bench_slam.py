@@ -25,13 +25,14 @@ import gtsam
 import numpy as np
 
 from pipelines.atomic_write import atomic_path
-from pipelines.bench_common import UsageError, default_out_dir, write_csv
+from pipelines.bench_common import default_out_dir, write_csv
 from pipelines.bench_slam_bags import bag_experiment
 from pipelines.kiss_slam_baseline import kiss_slam_available, run_kiss_slam
 from pipelines.simulation import simulate_sequence
+from pipelines.slam import load_config
 from pipelines.trajectory_io import write_tum
 from pipelines.trajectory_metrics import ate
-from sandro_slam import OfflineSlam, SlamConfig, SlamResult
+from sandro_slam import OfflineSlam, SlamResult
 from sandro_slam.config import GraphConfig
 from sandro_slam.pose_graph import between_factor, robust_optimize
 
@@ -52,9 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark; returns the exit code."""
-    if args.config is not None and not args.config.is_file():
-        raise UsageError(f"no such config file: {args.config}")
-    config = SlamConfig.from_yaml(args.config) if args.config else SlamConfig()
+    config = load_config(args.config)
     out = args.out or default_out_dir("bench_slam")
     out.mkdir(parents=True, exist_ok=True)
     sequence = simulate_sequence(seed=args.seed, laps=args.laps, frames=args.frames)
