@@ -29,6 +29,17 @@ def parse_list(text: str, allowed: Iterable[str], what: str) -> list[str]:
     return list(dict.fromkeys(names))
 
 
+def parse_int_list(text: str, option: str, minimum: int, item: str) -> list[int]:
+    """A comma list of integers, each at least `minimum`, in the order given; UsageError naming `option` otherwise."""
+    try:
+        values = [int(value) for value in text.split(",")]
+    except ValueError:
+        raise UsageError(f"{option} {text!r}: expected a comma list of integers") from None
+    if min(values) < minimum:
+        raise UsageError(f"{option}: every {item} must be at least {minimum}")
+    return values
+
+
 def pose_errors(T_estimate: np.ndarray, T_truth: np.ndarray) -> tuple[float, float]:
     """Rotation error [deg] (the angle of R_est^T R_true) and translation error [m] (|t_est - t_true|)."""
     R = T_estimate[:3, :3].T @ T_truth[:3, :3]

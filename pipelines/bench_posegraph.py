@@ -43,7 +43,7 @@ import matplotlib.pyplot as plt  # noqa: E402 - after choosing the backend
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from pipelines.bench_common import UsageError, default_out_dir, parse_list, write_csv  # noqa: E402
+from pipelines.bench_common import UsageError, default_out_dir, parse_int_list, parse_list, write_csv  # noqa: E402
 from sandro_slam.config import GraphConfig  # noqa: E402
 from sandro_slam.pose_graph import robust_optimize  # noqa: E402
 
@@ -343,13 +343,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _rates(text: str) -> list[int]:
-    try:
-        rates = [int(rate) for rate in text.split(",")]
-    except ValueError:
-        raise UsageError(f"--rates {text!r}: expected a comma list of integers") from None
-    if min(rates) < 0:
-        raise UsageError("--rates: every rate must be at least 0")
-    return list(dict.fromkeys(rates))
+    return list(dict.fromkeys(parse_int_list(text, "--rates", 0, "rate")))
 
 
 def _info_scales(text: str) -> list[str]:

@@ -25,7 +25,7 @@ from typing import Iterator
 import numpy as np
 from tqdm import tqdm
 
-from pipelines.bench_common import UsageError, default_out_dir, parse_list, pose_errors, write_csv
+from pipelines.bench_common import UsageError, default_out_dir, parse_int_list, parse_list, pose_errors, write_csv
 from pipelines.bench_report import SUMMARY_FIELDS, format_tables, plot_results, summarize
 from pipelines.bench_scale import SCALE_FIELDS, SCALE_SIZES, scale_rows
 from pipelines.io_pointclouds import load_point_cloud
@@ -206,13 +206,7 @@ def _positive(value: float, option: str) -> None:
 def _scale_sizes(text: str | None, quick: bool) -> list[int]:
     if text is None:
         return [1000] if quick else list(SCALE_SIZES)
-    try:
-        sizes = [int(size) for size in text.split(",")]
-    except ValueError:
-        raise UsageError(f"--scale-sizes {text!r}: expected a comma list of integers") from None
-    if min(sizes) < 10:
-        raise UsageError("--scale-sizes: every size must be at least 10")
-    return sizes
+    return parse_int_list(text, "--scale-sizes", 10, "size")
 
 
 def resolve(args: argparse.Namespace) -> Settings:
