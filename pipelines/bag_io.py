@@ -8,6 +8,7 @@ an empty array when the cloud carries no per-point time.
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from types import TracebackType
@@ -351,6 +352,20 @@ def scan_cloud(points: np.ndarray, times: np.ndarray, intensities: np.ndarray | 
 
 
 Scan = tuple  # (stamp [s], points (N, 3) [m], times (N,) [s] or empty[, intensities (N,)])
+
+
+def bag_path(folder: str | Path, stem: str, fmt: str) -> Path:
+    """Where `write_bag` puts a bag named `stem` in `folder`: a .bag file for ros1, a bag folder for ros2-*."""
+    return Path(folder) / (f"{stem}.bag" if fmt == "ros1" else f"{stem}_{fmt}")
+
+
+def delete_bag(path: str | Path) -> None:
+    """Remove a bag: a ROS1 file or a ROS2 bag folder."""
+    path = Path(path)
+    if path.is_dir():
+        shutil.rmtree(path)
+    else:
+        path.unlink()
 
 
 def write_bag(path: str | Path, fmt: str, scans: Iterable[Scan], topic: str = "/points", frame_id: str = "lidar",

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import shutil
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
-from pipelines.bag_io import BagScans, write_bag
+from pipelines.bag_io import BagScans, bag_path, delete_bag, write_bag
 
 BEAMS, COLUMNS, RATE = 64, 2048, 10.0  # an Ouster OS-64 in 2048 x 10 mode
 
@@ -39,7 +38,7 @@ def bag_read_speed(folder: Path, fmt: str, scans: int = 100, seed: int = 0) -> d
     """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    path = folder / ("bag_read_speed.bag" if fmt == "ros1" else f"bag_read_speed_{fmt}")
+    path = bag_path(folder, "bag_read_speed", fmt)
     write_bag(path, fmt, _ouster_like_scans(scans, seed), layout="ouster", overwrite=True)
     try:
         start = time.perf_counter()
@@ -49,9 +48,6 @@ def bag_read_speed(folder: Path, fmt: str, scans: int = 100, seed: int = 0) -> d
                 points += len(xyz)
         read_s = time.perf_counter() - start
     finally:
-        if path.is_dir():
-            shutil.rmtree(path)
-        else:
-            path.unlink()
+        delete_bag(path)
     return {"format": fmt, "scans": scans, "points_per_scan": BEAMS * COLUMNS, "read_s": read_s,
             "realtime_factor": scans / RATE / read_s, "points_read_per_scan": points / max(scans, 1)}

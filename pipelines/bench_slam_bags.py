@@ -6,7 +6,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from pipelines.bag_io import FORMATS
+from pipelines.bag_io import FORMATS, bag_path, delete_bag
 from pipelines.bench_bags import bag_read_speed
 from pipelines.simulate import ground_truth_path, simulate_bag
 from pipelines.slam import run_bag
@@ -24,7 +24,7 @@ def bag_experiment(out: Path, config: SlamConfig, seed: int, laps: int, frames: 
     folder.mkdir(parents=True, exist_ok=True)
     try:
         for fmt in formats:
-            bag = folder / ("drive.bag" if fmt == "ros1" else f"drive_{fmt}")
+            bag = bag_path(folder, "drive", fmt)
             print(f"bag {fmt}: simulating, then sandro-slam ...", flush=True)
             simulate_bag(bag, fmt, seed=seed, laps=laps, frames=frames, overwrite=True)
             _, run = run_bag(bag, out / f"sandro-slam_{fmt}", config,
@@ -33,11 +33,12 @@ def bag_experiment(out: Path, config: SlamConfig, seed: int, laps: int, frames: 
             metrics[f"bag_{fmt}_ate_sandro_slam"] = run["ground_truth"]["ate_slam_m"]
             metrics[f"bag_{fmt}_fps"] = run["frames_per_s"]
             metrics[f"bag_{fmt}_read_share"] = run["bag_read_s"] / run["wall_s"]
-            shutil.rmtree(bag) if bag.is_dir() else bag.unlink()
+            delete_bag(bag)  # ~350 MB each
             ground_truth_path(bag).unlink()
         for fmt in formats:
             print(f"bag {fmt}: reading speed of a 64-beam bag ...", flush=True)
-            metrics[f"bag_{fmt}_read_realtime_factor_64beam"] = bag_read_speed(folder, fmt, read_scans)["realtime_factor"]
+            speed = bag_read_speed(folder, fmt, read_scans)
+            metrics[f"bag_{fmt}_read_realtime_factor_64beam"] = speed["realtime_factor"]
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     return metrics
