@@ -36,8 +36,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of `sandro-bench`; returns the exit code (2 for bad arguments or input files)."""
-    args = build_parser().parse_args(argv)
+    """Entry point of `sandro-bench`; returns the exit code (2 for bad arguments or input files, argparse's
+    own included: it reports them by raising SystemExit)."""
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exit_:
+        return int(exit_.code or 0)
     try:
         return SUBCOMMANDS[args.command].run(args)
     except (UsageError, InputError) as error:

@@ -112,13 +112,6 @@ def test_injected_loops_are_seeded_and_skip_neighbours(data):
     assert all(np.linalg.norm(f.measured().translation()) <= 5.0 for f in first)
 
 
-def _exit_code(argv: list[str]) -> int:
-    try:
-        return main(argv)
-    except SystemExit as exit:  # argparse's own errors
-        return int(exit.code)
-
-
 @pytest.mark.parametrize(
     "args, message",
     [
@@ -131,6 +124,6 @@ def _exit_code(argv: list[str]) -> int:
 )
 def test_bad_arguments_exit_2_with_one_line(data, tmp_path, capsys, args, message):
     defaults = [] if "--data" in args else ["--data", str(data)]
-    assert _exit_code(["posegraph", *defaults, "--out", str(tmp_path / "out"), *args]) == 2
+    assert main(["posegraph", *defaults, "--out", str(tmp_path / "out"), *args]) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err

@@ -40,13 +40,6 @@ def test_same_seed_same_trials(tmp_path):
     assert errors("a") == errors("b")
 
 
-def _exit_code(argv: list[str]) -> int:
-    try:
-        return main(argv)
-    except SystemExit as exit:  # argparse's own errors
-        return int(exit.code)
-
-
 @pytest.mark.parametrize(
     "args, message",
     [
@@ -58,6 +51,6 @@ def _exit_code(argv: list[str]) -> int:
     ],
 )
 def test_bad_arguments_exit_2_with_one_line(tmp_path, capsys, args, message):
-    assert _exit_code(["registration", "--out", str(tmp_path), *args]) == 2
+    assert main(["registration", "--out", str(tmp_path), *args]) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
