@@ -32,6 +32,8 @@ import numpy as np
 from pipelines.atomic_write import atomic_path, write_text_atomic
 from pipelines.bag_io import BagError, BagScans
 from pipelines.results_folder import link_latest, new_run_folder
+from pipelines.session_io import write_session
+from pipelines.slam_outputs import plot_trajectories, write_graph, write_loops, write_map, write_trajectories
 from pipelines.trajectory_io import read_trajectory
 from pipelines.trajectory_metrics import ate, interpolate_poses, rpe
 from sandro_slam import OfflineSlam, SlamConfig, SlamResult
@@ -64,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point; exit codes: 0 done, 1 processing failed, 2 bad input, 130 aborted."""
+    """Entry point; exit codes: 0 done, 2 bad input (a bag without any usable scan included), 130 aborted."""
     args = build_parser().parse_args(argv)
     try:
         config = load_config(args.config)
@@ -152,9 +154,6 @@ def write_results(folder: Path, result: SlamResult, config: SlamConfig, metrics:
                   truth: tuple[np.ndarray, np.ndarray] | None, map_voxel: float) -> None:
     """Every output file of a run (see the module docstring), each written atomically; `truth` is the ground
     truth as `match_ground_truth` returns it."""
-    from pipelines.session_io import write_session
-    from pipelines.slam_outputs import plot_trajectories, write_graph, write_loops, write_map, write_trajectories
-
     write_trajectories(folder, result)
     write_graph(folder / "graph.g2o", result)
     write_loops(folder / "loops.csv", result)
