@@ -157,7 +157,8 @@ def _plot(path: Path, trajectories: dict[str, np.ndarray], result: SlamResult) -
                 alpha=0.9 if name != "ground truth" else 0.4)
         if name != "ground truth":
             error = np.linalg.norm(aligned[:, :3, 3] - truth[:, :3, 3], axis=1)
-            errors.plot(result.timestamps - result.timestamps[0], error, label=f"{name} (ATE {ate(poses, truth):.3f} m)")
+            errors.plot(result.timestamps - result.timestamps[0], error,
+                        label=f"{name} (ATE {ate(poses, truth):.3f} m)")
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")

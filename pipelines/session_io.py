@@ -113,8 +113,9 @@ def _edges(path: Path, graph: gtsam.NonlinearFactorGraph) -> list[SessionEdge]:
         target, source = (int(k) for k in factor.keys())
         if (target, source) != (int(row["target"]), int(row["source"])) or row["kind"] not in ("odometry", "loop"):
             raise ValueError(f"{path}: row {index} does not describe g2o edge {target}-{source}")
-        edges.append(SessionEdge(target, source, factor.measured().matrix(), np.asarray(factor.noiseModel().covariance()),
-                                 row["kind"], row["accepted"] == "1"))
+        covariance = np.asarray(factor.noiseModel().covariance())
+        edges.append(SessionEdge(target, source, factor.measured().matrix(), covariance, row["kind"],
+                                 row["accepted"] == "1"))
     return edges
 
 

@@ -21,7 +21,9 @@ def align_se3(estimate: np.ndarray, reference: np.ndarray) -> np.ndarray:
 def ate(estimate: np.ndarray, reference: np.ndarray) -> float:
     """Absolute trajectory error [m]: RMSE of the positions of (N, 4, 4) poses after `align_se3`."""
     if len(estimate) != len(reference) or len(estimate) == 0:
-        raise ValueError(f"ATE needs two trajectories of the same non-zero length, got {len(estimate)} and {len(reference)}")
+        raise ValueError(
+            f"ATE needs two trajectories of the same non-zero length, got {len(estimate)} and {len(reference)}"
+        )
     aligned = align_se3(estimate, reference) @ estimate
     return float(np.sqrt(np.mean(np.sum((aligned[:, :3, 3] - reference[:, :3, 3]) ** 2, axis=1))))
 
