@@ -15,7 +15,9 @@ class KeyframeConfig(StrictModel):
 
     distance: float = Field(10.0, gt=0.0, description="travel [m] that starts a new keyframe")
     angle_deg: float = Field(30.0, gt=0.0, description="rotation [deg] that starts a new keyframe")
-    submap_voxel: float = Field(0.25, gt=0.0, description="voxel size [m] of the stored submap")
+    # 0.5 m: as fine as registration uses (ICP source 0.5 m, FPFH 1 m); against 0.25 m, loop closure time
+    # 8.9 -> 6.0 s on the simulated drive at the same ATE (0.180 / 0.181 m).
+    submap_voxel: float = Field(0.5, gt=0.0, description="voxel size [m] of the stored submap")
     submap_radius: float = Field(30.0, gt=0.0, description="submap points farther than this [m] are dropped")
 
 
