@@ -1,8 +1,13 @@
 """`sandro-bench slam` wiring, on a few frames of the simulated drive."""
 
 import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
 
 from pipelines.bench import main
+from pipelines.bench_slam import keyframe_floor
 from pipelines.bench_slam_bags import bag_experiment
 from sandro_slam import SlamConfig
 
@@ -26,3 +31,25 @@ def test_bag_experiment_runs_a_bag_end_to_end_and_times_reading(tmp_path):
     assert 0 < metrics["bag_ros2-mcap_read_share"] < 1 and metrics["bag_ros2-mcap_read_realtime_factor_64beam"] > 0
     assert not (tmp_path / "bags").exists()  # the bags are removed
     assert (tmp_path / "sandro-slam_ros2-mcap" / "latest" / "metrics.json").is_file()
+
+
+def _poses(xs):
+    poses = np.tile(np.eye(4), (len(xs), 1, 1))
+    poses[:, 0, 3] = xs
+    return poses
+
+
+def test_keyframe_floor_is_the_error_no_rigid_move_per_keyframe_removes():
+    truth = _poses(np.arange(6.0))
+    keyframes = [SimpleNamespace(key=0), SimpleNamespace(key=1)]
+    of_frame = np.array([0, 0, 0, 1, 1, 1])
+    shifted = truth.copy()
+    shifted[:3, :3, 3] += [5.0, -2.0, 1.0]  # keyframe 0 off by one rigid move, keyframe 1 by another
+    shifted[3:, 1, 3] += 3.0
+    result = SimpleNamespace(keyframes=keyframes, keyframe_of_frame=of_frame, odometry_poses=shifted)
+    assert keyframe_floor(result, truth) == pytest.approx(0.0, abs=1e-9)
+    bent = truth.copy()
+    bent[1, 1, 3] += 0.3  # the middle scan of keyframe 0 off the line its neighbours lie on
+    result.odometry_poses = bent
+    floor = keyframe_floor(result, truth)
+    assert 0.0 < floor < 0.3 / np.sqrt(6)  # the fit spreads the bend over the keyframe's three scans
