@@ -9,6 +9,7 @@ from typing import Iterable, Sequence
 import gtsam
 import numpy as np
 from kiss_icp.kiss_icp import KissICP
+from kiss_icp.mapping import get_voxel_hash_map
 
 from sandro_slam.config import SlamConfig
 from sandro_slam.keyframes import Keyframe, KeyframeBuilder
@@ -24,7 +25,7 @@ class SlamResult:
     timestamps: np.ndarray  # (F,) [s] the time each pose refers to: stamp + latest per-point time (KISS-ICP
     # deskews to the latest point), the stamp itself for frames without per-point times
     poses: np.ndarray  # (F, 4, 4) optimised: every scan moved with its keyframe
-    odometry_poses: np.ndarray  # (F, 4, 4) KISS-ICP alone
+    odometry_poses: np.ndarray  # (F, 4, 4) KISS-ICP alone, its first scans re-registered (reregister_start)
     keyframes: list[Keyframe]
     keyframe_of_frame: np.ndarray  # (F,) key of the keyframe each frame belongs to
     graph: gtsam.NonlinearFactorGraph
@@ -65,6 +66,29 @@ class OfflineSlam:
             from tqdm import tqdm
 
             iterator = tqdm(frames, unit="frame", desc="sandro-slam")
+
+        def add(stamp: float, pose: np.ndarray, deskewed: np.ndarray) -> None:
+            tic = time.perf_counter()
+            completed = builder.add_scan(len(stamps), pose, deskewed)
+            if completed is not None:
+                self._close(completed, keyframes)
+            timings["loop_closure"] += time.perf_counter() - tic
+            stamps.append(stamp)
+            odometry_poses.append(pose)
+            keys.append(builder.current_key())
+
+        def release_start() -> np.ndarray:
+            """Re-register the held scans, add them; the correction that maps later KISS-ICP poses alike."""
+            tic = time.perf_counter()
+            fixed = reregister_start(odometry, np.asarray(held_poses), held_scans, self.config.keyframes.distance)
+            timings["odometry"] += time.perf_counter() - tic
+            for stamp, pose, deskewed in zip(held_stamps, fixed, held_scans):
+                add(stamp, pose, deskewed)
+            return fixed[-1] @ np.linalg.inv(held_poses[-1])
+
+        # The scans of the first two keyframe distances wait until the start is re-registered (reregister_start).
+        held_stamps, held_poses, held_scans = [], [], []
+        correction = None  # KISS-ICP's frame -> the re-registered start's, once it is known
         for index, frame in enumerate(iterator):
             stamp, points, times = _unpack(frame, index)
             finite = np.all(np.isfinite(points), axis=1)
@@ -77,15 +101,17 @@ class OfflineSlam:
             deskewed, _ = odometry.register_frame(points, times)
             pose = odometry.last_pose.copy()
             timings["odometry"] += time.perf_counter() - tic
-
-            tic = time.perf_counter()
-            completed = builder.add_scan(len(stamps), pose, deskewed)
-            if completed is not None:
-                self._close(completed, keyframes)
-            timings["loop_closure"] += time.perf_counter() - tic
-            stamps.append(stamp + (times.max() if len(times) and self.config.odometry.data.deskew else 0.0))
-            odometry_poses.append(pose)
-            keys.append(builder.current_key())
+            stamp += times.max() if len(times) and self.config.odometry.data.deskew else 0.0
+            if correction is not None:
+                add(stamp, correction @ pose, deskewed)
+                continue
+            held_stamps.append(stamp)
+            held_poses.append(pose)
+            held_scans.append(deskewed)
+            if path_length(np.asarray(held_poses))[-1] >= 2.0 * self.config.keyframes.distance:
+                correction = release_start()
+        if correction is None and held_stamps:
+            release_start()
         if not stamps:
             raise ValueError("no frame with finite points: nothing to process")
 
@@ -135,3 +161,35 @@ def _unpack(frame: Frame, index: int) -> tuple[float, np.ndarray, np.ndarray]:
     else:
         times = np.empty(0)  # KISS-ICP's convention for "no per-point times": no deskewing
     return stamp, points, times
+
+
+def path_length(poses: np.ndarray) -> np.ndarray:
+    """(F,) path length [m] travelled at each of the (F, 4, 4) poses."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))])
+
+
+def reregister_start(odometry: KissICP, poses: np.ndarray, scans: list[np.ndarray], distance: float) -> np.ndarray:
+    """The first scans' poses (F, 4, 4), re-registered: each scan of the first `distance` metres aligned, from
+    the last back to the first, onto a map of the scans after them, with KISS-ICP's own registration; returned
+    relative to the first scan again. `scans` are the deskewed scans at `poses`.
+
+    Starting from rest, KISS-ICP fills its map with the ground rings of near-identical scans, and the rings of
+    the next scans lock onto them: where little else pins the motion along the street (the edge of the
+    simulated city), the odometry stays behind while the vehicle speeds up, 2.5 m over its first 3 m, an error
+    every later pose keeps and no loop removes (those scans move rigidly with the first keyframe). The scans of
+    the next `distance` metres, taken in motion, make a map without that pattern: the start error falls to
+    0.11 m there and stays within 0.15 m elsewhere.
+    """
+    first = int(np.searchsorted(path_length(poses), distance))  # the first scan of the map
+    if first >= len(poses):
+        return poses
+    local_map = get_voxel_hash_map(odometry.config)
+    for pose, scan in zip(poses[first:], scans[first:]):
+        local_map.add_points(odometry.voxelize(scan)[1] @ pose[:3, :3].T + pose[:3, 3])
+    sigma = odometry.adaptive_threshold.get_threshold()
+    fixed = poses.copy()
+    for i in range(first - 1, -1, -1):
+        guess = fixed[i + 1] @ np.linalg.inv(poses[i + 1]) @ poses[i]
+        fixed[i] = odometry.registration.align_points_to_map(odometry.voxelize(scans[i])[0], local_map, guess,
+                                                             3.0 * sigma, sigma)
+    return np.linalg.inv(fixed[0]) @ fixed
