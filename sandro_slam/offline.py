@@ -12,8 +12,10 @@ from kiss_icp.kiss_icp import KissICP
 from kiss_icp.mapping import get_voxel_hash_map
 
 from sandro_slam.config import SlamConfig
-from sandro_slam.keyframes import Keyframe, KeyframeBuilder
+from sandro_slam.keyframes import Keyframe, KeyframeBuilder, voxel_downsample
 from sandro_slam.module import LoopClosure, LoopClosureModule
+
+MAX_HELD_SCANS = 300  # a start that stands still longer (30 s at 10 Hz) is not held back any further
 
 Frame = Sequence  # (timestamp [s], (N, 3) points[, (N,) per-point times [s] relative to the stamp])
 
@@ -86,8 +88,10 @@ class OfflineSlam:
                 add(stamp, pose, deskewed)
             return fixed[-1] @ np.linalg.inv(held_poses[-1])
 
-        # The scans of the first two keyframe distances wait until the start is re-registered (reregister_start).
+        # The scans of the first two keyframe distances wait until the start is re-registered (reregister_start),
+        # voxelised as finely as the submaps and KISS-ICP's map take them.
         held_stamps, held_poses, held_scans = [], [], []
+        held_voxel = min(self.config.keyframes.submap_voxel, 0.5 * self.config.odometry.mapping.voxel_size)
         correction = None  # KISS-ICP's frame -> the re-registered start's, once it is known
         for index, frame in enumerate(iterator):
             stamp, points, times = _unpack(frame, index)
@@ -107,8 +111,9 @@ class OfflineSlam:
                 continue
             held_stamps.append(stamp)
             held_poses.append(pose)
-            held_scans.append(deskewed)
-            if path_length(np.asarray(held_poses))[-1] >= 2.0 * self.config.keyframes.distance:
+            held_scans.append(voxel_downsample(deskewed, held_voxel))
+            if (len(held_poses) >= MAX_HELD_SCANS
+                    or path_length(np.asarray(held_poses))[-1] >= 2.0 * self.config.keyframes.distance):
                 correction = release_start()
         if correction is None and held_stamps:
             release_start()

@@ -137,3 +137,21 @@ def test_a_start_from_rest_that_kiss_icp_gets_wrong_is_re_registered():
     assert _first_pose_error(np.asarray(raw), truth) > 1.0
     assert _first_pose_error(result.odometry_poses, truth) < 0.3
     assert _first_pose_error(result.poses, truth) < 0.3
+
+
+def test_a_start_standing_still_is_held_back_no_longer_than_max_held_scans(monkeypatch):
+    import sandro_slam.offline as offline
+
+    monkeypatch.setattr(offline, "MAX_HELD_SCANS", 3)
+    registered, added = [], []  # frames registered by KISS-ICP; (frame, frames registered by then) per added scan
+    register_frame = offline.KissICP.register_frame
+    add_scan = offline.KeyframeBuilder.add_scan
+    monkeypatch.setattr(offline.KissICP, "register_frame",
+                        lambda self, *args: registered.append(1) or register_frame(self, *args))
+    monkeypatch.setattr(offline.KeyframeBuilder, "add_scan",
+                        lambda self, index, *args: added.append((index, len(registered))) or add_scan(self, index, *args))
+    scan = simulate_sequence(seed=1, frames=1).frame(0)
+    frames = [(0.1 * i, scan.points, scan.times) for i in range(7)]  # the same sweep: standing still
+    result = OfflineSlam(SlamConfig()).run(frames)
+    assert added == [(0, 3), (1, 3), (2, 3), (3, 4), (4, 5), (5, 6), (6, 7)]
+    assert np.allclose(result.poses[:, :3, 3], 0.0, atol=0.05)
