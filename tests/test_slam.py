@@ -148,8 +148,8 @@ def test_a_start_standing_still_is_held_back_no_longer_than_max_held_scans(monke
     add_scan = offline.KeyframeBuilder.add_scan
     monkeypatch.setattr(offline.KissICP, "register_frame",
                         lambda self, *args: registered.append(1) or register_frame(self, *args))
-    monkeypatch.setattr(offline.KeyframeBuilder, "add_scan",
-                        lambda self, index, *args: added.append((index, len(registered))) or add_scan(self, index, *args))
+    monkeypatch.setattr(offline.KeyframeBuilder, "add_scan", lambda self, index, *args:
+                        added.append((index, len(registered))) or add_scan(self, index, *args))
     scan = simulate_sequence(seed=1, frames=1).frame(0)
     frames = [(0.1 * i, scan.points, scan.times) for i in range(7)]  # the same sweep: standing still
     result = OfflineSlam(SlamConfig()).run(frames)
