@@ -37,9 +37,10 @@ class KeyframeBuilder:
     """Starts a keyframe every `distance` metres or `angle_deg` degrees of odometry and accumulates the
     scans that follow it, until the next keyframe, into its submap.
 
-    Each scan is voxel-downsampled in its own frame, moved into the keyframe frame and added to a voxel hash
-    map that keeps the first point of every voxel: the same submap as downsampling all the scans at the end,
-    at half the time (that one pass over ~150k points cost more than the ten scans).
+    Each scan is moved into the keyframe frame and added to a voxel hash map that keeps the first point of
+    every voxel: the same submap as downsampling all the scans at the end, at half the time (that one pass over
+    ~150k points cost more than the ten scans). Scans come voxelised already (`OfflineSlam` passes the scan
+    KISS-ICP voxelised for its own map), which keeps the points to move few.
     """
 
     def __init__(self, config: KeyframeConfig):
@@ -71,8 +72,7 @@ class KeyframeBuilder:
             self._current = Keyframe(self._next_key, T_world_scan.copy(), frame_index, self._travelled)
             self._next_key += 1
         T_keyframe_scan = np.linalg.inv(self._current.T_world_keyframe) @ T_world_scan
-        self._submap.add_points(voxel_downsample(points, self.config.submap_voxel) @ T_keyframe_scan[:3, :3].T
-                                + T_keyframe_scan[:3, 3])
+        self._submap.add_points(points @ T_keyframe_scan[:3, :3].T + T_keyframe_scan[:3, 3])
         return completed
 
     def flush(self) -> Keyframe | None:
