@@ -4,18 +4,11 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import NoReturn
 
 from pipelines import bench_merge, bench_posegraph, bench_registration, bench_slam
 from pipelines.bench_common import UsageError
+from pipelines.cli import Parser
 from pipelines.slam import InputError
-
-
-class _Parser(argparse.ArgumentParser):
-    """An argument parser whose errors are one line on stderr and exit code 2."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 SUBCOMMANDS = {"registration": bench_registration, "slam": bench_slam, "posegraph": bench_posegraph,
@@ -24,7 +17,7 @@ SUBCOMMANDS = {"registration": bench_registration, "slam": bench_slam, "posegrap
 
 def build_parser() -> argparse.ArgumentParser:
     """The `sandro-bench` parser, with one subparser per benchmark."""
-    parser = _Parser(prog="sandro-bench", description=__doc__)
+    parser = Parser(prog="sandro-bench", description=__doc__)
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="BENCHMARK")
     for name, module in SUBCOMMANDS.items():
         doc = module.__doc__ or ""

@@ -19,24 +19,19 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import NoReturn
 
 import numpy as np
 
+from pipelines.cli import Parser
 from pipelines.slam import InputError, load_config
 from sandro_slam import MergeResult, Session, SlamConfig, merge_sessions
 
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface of `sandro-merge`."""
-    parser = _Parser(prog="sandro-merge", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = Parser(prog="sandro-merge", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("sessions", type=Path, nargs="+", metavar="SESSION",
                         help="sandro-slam results folder or bag (at least two)")
     parser.add_argument("--out", type=Path, required=True, help="output folder (new or empty)")

@@ -13,12 +13,12 @@ import argparse
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import NoReturn
 
 import numpy as np
 
 from pipelines.atomic_write import atomic_path
 from pipelines.bag_io import FORMATS, write_bag
+from pipelines.cli import Parser
 from pipelines.simulation import simulate_sequence
 from pipelines.trajectory_io import write_tum
 
@@ -30,13 +30,6 @@ def ground_truth_path(out: str | Path) -> Path:
     """Where `sandro-simulate OUT` writes the ground truth: OUT.gt.tum beside OUT."""
     out = Path(out)
     return out.with_name(out.name + ".gt.tum")
-
-
-class _Parser(argparse.ArgumentParser):
-    """An argument parser whose errors are one line on stderr and exit code 2."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 def _bounded(kind: Callable[[str], float], low: float, what: str) -> Callable[[str], float]:
@@ -54,7 +47,7 @@ def _bounded(kind: Callable[[str], float], low: float, what: str) -> Callable[[s
 
 def build_parser() -> argparse.ArgumentParser:
     """The `sandro-simulate` parser."""
-    parser = _Parser(prog="sandro-simulate", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = Parser(prog="sandro-simulate", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("out", metavar="OUT", type=Path,
                         help="the bag to write: a .bag file (ros1) or a folder (ros2-*); ground truth in OUT.gt.tum")
     parser.add_argument("--format", choices=FORMATS,

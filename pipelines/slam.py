@@ -25,12 +25,12 @@ import time
 from collections import Counter
 from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import NoReturn
 
 import numpy as np
 
 from pipelines.atomic_write import atomic_path, write_text_atomic
 from pipelines.bag_io import BagError, BagScans
+from pipelines.cli import Parser
 from pipelines.results_folder import link_latest, new_run_folder
 from pipelines.session_io import write_session
 from pipelines.slam_outputs import plot_trajectories, write_graph, write_loops, write_map, write_trajectories
@@ -46,14 +46,9 @@ class InputError(Exception):
     """Bad arguments or input files: one line on stderr, exit code 2."""
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface of `sandro-slam`."""
-    parser = _Parser(prog="sandro-slam", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = Parser(prog="sandro-slam", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("bag", type=Path, help="ROS1 .bag file, ROS2 bag folder (sqlite3 or mcap) or .mcap file")
     parser.add_argument("--topic", help="sensor_msgs/PointCloud2 topic (needed when the bag has several)")
     parser.add_argument("--config", type=Path, help="SlamConfig YAML (default: configs/default.yaml's values)")
