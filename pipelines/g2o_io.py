@@ -7,6 +7,7 @@ from pathlib import Path
 import gtsam
 
 from pipelines.atomic_write import atomic_path
+from sandro_slam.pose_graph import gaussian_noise
 
 
 def write_g2o(path: str | Path, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> int:
@@ -20,10 +21,8 @@ def write_g2o(path: str | Path, graph: gtsam.NonlinearFactorGraph, values: gtsam
         factor = graph.at(index)
         if not isinstance(factor, gtsam.BetweenFactorPose3):
             continue
-        model = factor.noiseModel()
-        if isinstance(model, gtsam.noiseModel.Robust):
-            model = model.noise()
-        plain.add(gtsam.BetweenFactorPose3(factor.keys()[0], factor.keys()[1], factor.measured(), model))
+        plain.add(gtsam.BetweenFactorPose3(factor.keys()[0], factor.keys()[1], factor.measured(),
+                                           gaussian_noise(factor)))
     with atomic_path(path) as tmp:
         gtsam.writeG2o(plain, values, str(tmp))
     return plain.size()

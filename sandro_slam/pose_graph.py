@@ -35,6 +35,12 @@ def between_factor(key_a: int, key_b: int, T_a_b: np.ndarray, covariance: np.nda
     return gtsam.BetweenFactorPose3(key_a, key_b, gtsam.Pose3(T_a_b), gtsam.noiseModel.Gaussian.Covariance(covariance))
 
 
+def gaussian_noise(factor: gtsam.NoiseModelFactor) -> gtsam.noiseModel.Base:
+    """A factor's noise model, or the Gaussian a robust model wraps."""
+    model = factor.noiseModel()
+    return model.noise() if isinstance(model, gtsam.noiseModel.Robust) else model
+
+
 GNC_LM_ITERATIONS = 5  # LM iterations per GNC step (gtsam: 100)
 GNC_LM_RELATIVE_TOL = 1e-3  # LM relative cost decrease that ends a GNC step (gtsam: 1e-5)
 GNC_MU_STEP = {"gnc_tls": 2.0, "gnc_gm": 1.4}  # factor on GNC's control parameter per step (gtsam: 1.4; GM at

@@ -8,6 +8,7 @@ import gtsam
 import numpy as np
 
 from sandro_slam.offline import SlamResult
+from sandro_slam.pose_graph import between_factor, gaussian_noise
 
 
 @dataclass
@@ -23,8 +24,7 @@ class SessionEdge:
 
     def factor(self, target_key: int, source_key: int) -> gtsam.BetweenFactorPose3:
         """The factor between two graph keys (e.g. the session's keys mapped to gtsam symbols)."""
-        return gtsam.BetweenFactorPose3(target_key, source_key, gtsam.Pose3(self.T_target_source),
-                                        gtsam.noiseModel.Gaussian.Covariance(self.covariance))
+        return between_factor(target_key, source_key, self.T_target_source, self.covariance)
 
 
 @dataclass
@@ -55,7 +55,7 @@ class Session:
                 continue
             target, source = (int(k) for k in factor.keys())
             loop = loop_of_factor.get(index)
-            covariance = loop.covariance if loop is not None else _covariance(factor)
+            covariance = loop.covariance if loop is not None else np.asarray(gaussian_noise(factor).covariance())
             edges.append(SessionEdge(target, source, factor.measured().matrix(), covariance,
                                      "odometry" if loop is None else "loop", loop is None or loop.weight >= 0.5))
         odometry_of_key = {kf.key: kf.T_world_keyframe for kf in result.keyframes}
@@ -90,10 +90,3 @@ class Session:
                 raise ValueError(f"session {self.name}: an edge refers to unknown keyframe {edge.target}/{edge.source}")
         if not set(np.unique(self.keyframe_of_frame)) <= known:
             raise ValueError(f"session {self.name}: frames refer to unknown keyframes")
-
-
-def _covariance(factor: gtsam.BetweenFactorPose3) -> np.ndarray:
-    model = factor.noiseModel()
-    if isinstance(model, gtsam.noiseModel.Robust):
-        model = model.noise()
-    return np.asarray(model.covariance())
