@@ -30,6 +30,7 @@ import gtsam
 import numpy as np
 
 from sandro_slam.config import MergeConfig, SlamConfig
+from sandro_slam.keyframes import rotation_angle
 from sandro_slam.loop_registration import SubmapDescription, describe_submap, register_submaps
 from sandro_slam.pose_graph import between_factor, robust_optimize
 from sandro_slam.session import Session
@@ -232,24 +233,23 @@ def _implied(sessions: list[Session], loop: InterSessionLoop) -> np.ndarray:
 def _agree(sessions: list[Session], a: InterSessionLoop, b: InterSessionLoop, merge: MergeConfig) -> bool:
     """Whether two loops between the same sessions imply the same session transform: they move both source
     keyframes' positions to within `consistency_translation` and differ by `consistency_rotation_deg`."""
-    T_a, T_b = _implied(sessions, a), _implied(sessions, b)
-    angle = np.degrees(np.arccos(np.clip((np.trace(T_a[:3, :3].T @ T_b[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
-    if angle > merge.consistency_rotation_deg:
-        return False
     source = sessions[a.source_session].keyframe_poses
-    for p in (source[a.source_key][:, 3], source[b.source_key][:, 3]):
-        if np.linalg.norm((T_a @ p - T_b @ p)[:3]) > merge.consistency_translation:
-            return False
-    return True
+    return _alike(_implied(sessions, a), _implied(sessions, b), [source[a.source_key], source[b.source_key]], merge)
 
 
 def _fits(sessions: list[Session], loop: InterSessionLoop, T_i_j: np.ndarray, merge: MergeConfig) -> bool:
     """Whether a loop agrees, where it is, with the session transform T_i_j (the `_agree` tolerances)."""
-    T = _implied(sessions, loop)
-    angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3].T @ T_i_j[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
-    p = sessions[loop.source_session].keyframe_poses[loop.source_key][:, 3]
-    return bool(angle <= merge.consistency_rotation_deg
-                and np.linalg.norm((T @ p - T_i_j @ p)[:3]) <= merge.consistency_translation)
+    source = sessions[loop.source_session].keyframe_poses[loop.source_key]
+    return _alike(_implied(sessions, loop), T_i_j, [source], merge)
+
+
+def _alike(T_a: np.ndarray, T_b: np.ndarray, poses: list[np.ndarray], merge: MergeConfig) -> bool:
+    """Whether two session transforms differ by at most `consistency_rotation_deg` and move the positions of
+    `poses` (4x4) to within `consistency_translation` of each other."""
+    if np.degrees(rotation_angle(T_a[:3, :3].T @ T_b[:3, :3])) > merge.consistency_rotation_deg:
+        return False
+    return all(np.linalg.norm((T_a @ pose[:, 3] - T_b @ pose[:, 3])[:3]) <= merge.consistency_translation
+               for pose in poses)
 
 
 def _agreeing(sessions: list[Session], loops: list[InterSessionLoop],
