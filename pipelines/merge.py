@@ -159,20 +159,16 @@ def write_map(path: Path, sessions: list[Session], result: MergeResult, voxel: f
     import matplotlib
     import open3d as o3d
 
+    from pipelines.slam_outputs import submaps_cloud, write_ply
+
     colours = matplotlib.colormaps["tab10"]
     merged = o3d.geometry.PointCloud()
     for index, session in enumerate(sessions):
         poses = result.keyframe_poses[session.name]
-        points = np.vstack([session.submaps[k] @ poses[k][:3, :3].T + poses[k][:3, 3] for k in session.keys])
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel)
+        cloud = submaps_cloud(((session.submaps[k], poses[k]) for k in session.keys), voxel)
         cloud.paint_uniform_color(colours(index % 10)[:3])
         merged += cloud
-    from pipelines.atomic_write import atomic_path
-
-    with atomic_path(path) as tmp:
-        if not o3d.io.write_point_cloud(str(tmp), merged):
-            raise OSError(f"could not write {path}")
-    return len(merged.points)
+    return write_ply(path, merged)
 
 
 def plot_merge(path: Path, result: MergeResult) -> None:

@@ -6,6 +6,7 @@ Every file is written atomically (`pipelines.atomic_write`): a reader never sees
 from __future__ import annotations
 
 import csv
+from collections.abc import Iterable
 from pathlib import Path
 
 import gtsam
@@ -62,13 +63,23 @@ def write_loops(path: Path, result: SlamResult) -> None:
 def write_map(path: Path, result: SlamResult, voxel: float) -> int:
     """The keyframe submaps moved to their optimised poses, one point per `voxel` [m], as a PLY; returns the
     number of points."""
+    return write_ply(path, submaps_cloud(((kf.points, result.keyframe_poses[kf.key]) for kf in result.keyframes),
+                                         voxel))
+
+
+def submaps_cloud(submaps: Iterable[tuple[np.ndarray, np.ndarray]], voxel: float) -> o3d.geometry.PointCloud:
+    """Submaps given as (points in the keyframe frame, T_world_keyframe) moved into the world frame, one point
+    per `voxel` [m] (voxelised every 20 submaps on the way: memory stays bounded on long runs)."""
     cloud = o3d.geometry.PointCloud()
-    for index, keyframe in enumerate(result.keyframes):
-        T = result.keyframe_poses[keyframe.key]
-        cloud.points.extend(o3d.utility.Vector3dVector(keyframe.points @ T[:3, :3].T + T[:3, 3]))
-        if index % 20 == 19:  # keep memory bounded on long runs
+    for index, (points, T) in enumerate(submaps):
+        cloud.points.extend(o3d.utility.Vector3dVector(points @ T[:3, :3].T + T[:3, 3]))
+        if index % 20 == 19:
             cloud = cloud.voxel_down_sample(voxel)
-    cloud = cloud.voxel_down_sample(voxel)
+    return cloud.voxel_down_sample(voxel)
+
+
+def write_ply(path: Path, cloud: o3d.geometry.PointCloud) -> int:
+    """Write `cloud` as a PLY, atomically; returns its number of points."""
     with atomic_path(path) as tmp:
         if not o3d.io.write_point_cloud(str(tmp), cloud):
             raise OSError(f"could not write {path}")
