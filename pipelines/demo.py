@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from pipelines.bag_io import BagError
+from pipelines.cli import Parser
 from pipelines.simulate import ground_truth_path, simulate_bag
 from pipelines.slam import InputError, load_config, print_summary, run_bag
 from pipelines.trajectory_io import read_trajectory
@@ -22,8 +23,8 @@ DEFAULT_OUT = Path("results") / "demo"
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; exit codes as sandro-slam's."""
-    parser = argparse.ArgumentParser(prog="sandro-demo", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = Parser(prog="sandro-demo", description=__doc__,
+                    formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=500, help="scans in the simulated bag (default 500, ~1.2 laps)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulated city and drive (default 0)")
     parser.add_argument("--config", type=Path, help="SlamConfig YAML (default: configs/default.yaml's values)")

@@ -5,13 +5,13 @@ FPFH correspondences, SANDRO, errors against the ground truth, and the aligned c
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from pipelines.atomic_write import atomic_path
+from pipelines.cli import Parser
 from pipelines.io_pointclouds import load_point_cloud
 from pipelines.synthetic import random_transform, transform_points
 
@@ -19,7 +19,7 @@ DEFAULT_PAIR = Path(__file__).resolve().parents[1] / "tests" / "data" / "small_g
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pipelines.demo_registration", description=__doc__.splitlines()[0])
+    parser = Parser(prog="python -m pipelines.demo_registration", description=__doc__.splitlines()[0])
     parser.add_argument("--pair", type=Path, default=DEFAULT_PAIR,
                         help="folder with source.ply, target.ply, T_target_source.txt")
     parser.add_argument("--voxel", type=float, default=0.5, help="FPFH voxel size [m]")
