@@ -38,7 +38,7 @@ class LoopDetectionConfig(StrictModel):
 class LoopRegistrationConfig(StrictModel):
     """Registration and verification of one candidate pair of submaps."""
 
-    fpfh_voxel: float = Field(1.0, gt=0.0, description="voxel [m] of the FPFH keypoints")
+    fpfh_voxel: float = Field(1.25, gt=0.0, description="voxel [m] of the FPFH keypoints")
     fpfh_max_nn: int = Field(
         50, ge=1, description="neighbours per FPFH descriptor (100: twice the time, the same loops in simulation)"
     )
