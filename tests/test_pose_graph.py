@@ -7,7 +7,7 @@ import pytest
 from pipelines.synthetic import random_transform, transform_points
 from sandro_core import SandroConfig, register
 from sandro_slam.config import GraphConfig
-from sandro_slam.pose_graph import PoseGraph, between_factor, odometry_covariance
+from sandro_slam.pose_graph import PoseGraph, between_factor, odometry_covariance, robust_optimize, variance_factor
 
 
 def test_loop_factor_whitened_error_matches_registration_monte_carlo():
@@ -125,3 +125,60 @@ def test_a_loop_holds_only_when_the_estimate_already_satisfies_it():
     graph, _, _, _, false_factors = _build("batch", "gnc_tls", n_false=6)
     for loop in graph.loops:
         assert graph.holds(loop) == (loop.factor_index not in false_factors)
+
+
+def _loose_graph(seed: int = 0):
+    """A circle of 40 poses whose odometry and 60 true loops state 100x the standard deviation of their real
+    noise (like parking-garage's), plus 6 wrong loops 2.5 m and a few degrees off: within the stated noise."""
+    rng = np.random.default_rng(seed)
+    truth, _ = _chain(40, rng, drift=0.0)
+    stated = np.array([0.5] * 3 + [1.0] * 3)  # [rad] and [m]
+    noise = gtsam.noiseModel.Diagonal.Sigmas(stated)
+
+    def measured(a: int, b: int, offset: np.ndarray | None = None) -> gtsam.Pose3:
+        exact = gtsam.Pose3(np.linalg.inv(truth[a]) @ truth[b])
+        delta = rng.normal(scale=stated / 100.0) if offset is None else offset
+        return exact.compose(gtsam.Pose3.Expmap(delta))
+
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(truth[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-3)))
+    initial = gtsam.Values()
+    initial.insert(0, gtsam.Pose3(truth[0]))
+    for i in range(1, 40):
+        step = measured(i - 1, i)
+        graph.add(gtsam.BetweenFactorPose3(i - 1, i, step, noise))
+        initial.insert(i, initial.atPose3(i - 1).compose(step))
+    known = list(range(graph.size()))
+    for a, b in [(i, (i + 10) % 40) for i in range(40)] + [(i, i + 20) for i in range(20)]:
+        graph.add(gtsam.BetweenFactorPose3(a, b, measured(a, b), noise))
+    wrong = []
+    for _ in range(6):
+        a, b = sorted(rng.choice(40, 2, replace=False))
+        direction = rng.normal(size=3)
+        offset = np.concatenate([[0.0, 0.0, rng.uniform(0.03, 0.1)], direction / np.linalg.norm(direction) * 2.5])
+        wrong.append(graph.size())
+        graph.add(gtsam.BetweenFactorPose3(int(a), int(b), measured(int(a), int(b), offset), noise))
+    return graph, initial, known, wrong, truth
+
+
+def test_estimated_noise_scale_rejects_wrong_loops_that_loose_covariances_let_pass():
+    graph, initial, known, wrong, truth = _loose_graph()
+    _, given = robust_optimize(graph, initial, known, GraphConfig(robust="gnc_tls"))
+    assert np.all(given[wrong] >= 0.5)  # within 2.5 m of the truth: inliers by the stated 1 m
+    values, weights = robust_optimize(graph, initial, known, GraphConfig(robust="gnc_tls", noise_scale="estimated"))
+    rejected = set(np.flatnonzero(weights < 0.5))
+    assert set(wrong) <= rejected and len(rejected - set(wrong)) <= 1
+    errors = [np.linalg.norm(values.atPose3(i).translation() - truth[i][:3, 3]) for i in range(40)]
+    assert max(errors) < 0.1  # 1-1.5 m with the given covariances
+
+
+def test_variance_factor_of_a_clean_graph_is_its_noise_ratio_squared():
+    graph, initial, known, wrong, _ = _loose_graph()
+    weights = np.ones(graph.size())
+    weights[wrong] = 0.0
+    clean = gtsam.NonlinearFactorGraph()
+    for i in np.flatnonzero(weights):
+        clean.add(graph.at(int(i)))
+    values = gtsam.LevenbergMarquardtOptimizer(clean, initial).optimize()
+    assert 0.3e-4 < variance_factor(graph, values, weights, known) < 3e-4  # (1/100)^2
+    assert variance_factor(graph, values, weights, list(range(graph.size() - 8))) == 1.0  # too few loops
