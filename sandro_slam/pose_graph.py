@@ -72,7 +72,8 @@ def robust_optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, kn
     values, weights = _gnc(graph, initial, known_inliers, config, 1.0)
     if config.noise_scale == "estimated":
         scale = variance_factor(graph, values, weights, known_inliers)
-        values, weights = _gnc(graph, initial, known_inliers, config, scale)
+        if scale != 1.0:  # 1: too few loops to tell, and a second run would repeat the first
+            values, weights = _gnc(graph, initial, known_inliers, config, scale)
     kept = gtsam.NonlinearFactorGraph()
     for index in np.flatnonzero(weights >= 0.5):
         kept.add(graph.at(int(index)))
