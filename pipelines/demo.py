@@ -14,6 +14,7 @@ from pathlib import Path
 from pipelines.bag_io import BagError
 from pipelines.cli import Parser
 from pipelines.simulate import ground_truth_path, simulate_bag
+from pipelines.simulation import VERSION as SIMULATION_VERSION
 from pipelines.slam import InputError, load_config, print_summary, run_bag
 from pipelines.trajectory_io import read_trajectory
 
@@ -31,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help=f"where the bag is kept ({DEFAULT_CACHE})")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"base results folder ({DEFAULT_OUT})")
     args = parser.parse_args(argv)
-    bag = args.cache / f"city_seed{args.seed}_{args.frames}scans.bag"
+    bag = args.cache / f"city_v{SIMULATION_VERSION}_seed{args.seed}_{args.frames}scans.bag"
     try:
         config = load_config(args.config)
         if not (bag.is_file() and ground_truth_path(bag).is_file()):

@@ -9,6 +9,8 @@ from pipelines.simulation.sequence import Frame, SimulatedSequence, simulate_seq
 from pipelines.simulation.trajectory import Route, Trajectory
 from pipelines.simulation.world import CityLayout, World, build_city
 
+VERSION = 2  # bumped whenever the same arguments simulate different data (the demo's bag cache is keyed on it)
+
 __all__ = [
     "CityLayout",
     "Frame",
@@ -16,6 +18,7 @@ __all__ = [
     "SimulatedSequence",
     "SpinningLidar",
     "Trajectory",
+    "VERSION",
     "World",
     "build_city",
     "simulate_sequence",

@@ -15,28 +15,48 @@ from scipy.spatial.transform import Rotation
 @dataclass(frozen=True)
 class Route:
     """A counter-clockwise rounded rectangle in the ground plane, starting mid-way along its south side,
-    heading east (or `start` metres further along). Built from straight segments and quarter-circle arcs."""
+    heading east (or `start` metres further along). Straight sides joined by quarter turns; each turn is a
+    circular arc entered and left through clothoids (curvature linear in arc length over `transition`
+    metres), as roads are built, so the yaw rate ramps up and down instead of jumping."""
 
     xmin: float
     ymin: float
     xmax: float
     ymax: float
     corner_radius: float = 12.0  # [m]
+    transition: float = 8.0  # [m] clothoid at each end of a turn (0: plain arcs, the yaw rate steps)
     start: float = 0.0  # arc length [m] from the south mid-point at which the drive starts
 
-    def _segments(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per segment: start (x, y, heading) (S, 3), length (S,) [m], curvature (S,) [1/m]."""
-        r = self.corner_radius
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.transition <= 0.5 * np.pi * self.corner_radius:
+            raise ValueError(f"a turn of radius {self.corner_radius} m cannot hold two {self.transition} m "
+                             "transitions")
+
+    def _segments(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per segment: start (x, y, heading) (S, 3), length (S,) [m], curvature at its start (S,) [1/m]
+        and curvature rate (S,) [1/m^2]."""
+        r, ramp = self.corner_radius, self.transition
+        arc = 0.5 * np.pi * r - ramp
+        rate = 1.0 / (r * ramp) if ramp > 0.0 else 0.0
+        turn = (np.array([ramp, arc, ramp]), np.array([0.0, 1 / r, 1 / r]), np.array([rate, 0.0, -rate]))
+        state = np.zeros((1, 3))
+        for length, k0, dk in zip(*turn):
+            state = _advance(state, np.array([length]), np.array([k0]), np.array([dk]))
+        extent = state[0, 0]  # a symmetric turn reaches as far along its entry as across it
         width, height = self.xmax - self.xmin, self.ymax - self.ymin
-        arc = 0.5 * np.pi * r
-        half = 0.5 * width - r
-        lengths = np.array([half, arc, height - 2 * r, arc, width - 2 * r, arc, height - 2 * r, arc, half])
-        curvatures = np.array([0.0, 1 / r] * 4 + [0.0])
+        sides = [0.5 * width - extent, height - 2 * extent, width - 2 * extent, height - 2 * extent]
+        lengths, k0s, rates = [], [], []
+        for side in sides:
+            lengths += [side, *turn[0]]
+            k0s += [0.0, *turn[1]]
+            rates += [0.0, *turn[2]]
+        lengths, k0s, rates = [*lengths, sides[0]], [*k0s, 0.0], [*rates, 0.0]
+        lengths, k0s, rates = np.array(lengths), np.array(k0s), np.array(rates)
         starts = np.zeros((len(lengths), 3))
         starts[0] = [0.5 * (self.xmin + self.xmax), self.ymin, 0.0]
         for k in range(1, len(lengths)):
-            starts[k] = _advance(starts[k - 1 : k], lengths[k - 1 : k], curvatures[k - 1 : k])[0]
-        return starts, lengths, curvatures
+            starts[k] = _advance(starts[k - 1 : k], lengths[k - 1 : k], k0s[k - 1 : k], rates[k - 1 : k])[0]
+        return starts, lengths, k0s, rates
 
     @property
     def length(self) -> float:
@@ -46,23 +66,28 @@ class Route:
     def centreline(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """At arc lengths s (M,) [m] (taken modulo the lap length): positions (M, 2) [m], headings (M,)
         [rad, counter-clockwise from world x] and curvatures (M,) [1/m, positive turning left]."""
-        starts, lengths, curvatures = self._segments()
+        starts, lengths, k0s, rates = self._segments()
         ends = np.cumsum(lengths)
         s = np.mod(s + self.start, ends[-1])
         k = np.minimum(np.searchsorted(ends, s, side="right"), len(lengths) - 1)
-        state = _advance(starts[k], s - (ends[k] - lengths[k]), curvatures[k])
-        return state[:, :2], state[:, 2], curvatures[k]
+        along = s - (ends[k] - lengths[k])
+        state = _advance(starts[k], along, k0s[k], rates[k])
+        return state[:, :2], state[:, 2], k0s[k] + rates[k] * along
 
 
-def _advance(start: np.ndarray, distance: np.ndarray, curvature: np.ndarray) -> np.ndarray:
-    """(x, y, heading) after driving `distance` [m] at constant `curvature` [1/m] from `start` (M, 3)."""
+_NODES, _WEIGHTS = np.polynomial.legendre.leggauss(16)
+
+
+def _advance(start: np.ndarray, distance: np.ndarray, curvature: np.ndarray, rate: np.ndarray) -> np.ndarray:
+    """(x, y, heading) after driving `distance` [m] from `start` (M, 3) with curvature `curvature` [1/m]
+    at the start, changing by `rate` [1/m^2] per metre (a clothoid; 0: an arc or a straight line). The
+    heading is exact; the position is Gauss-Legendre quadrature, exact to rounding on these turns."""
     x, y, h = start.T
-    turn = curvature * distance
-    straight = np.abs(curvature) < 1e-12
-    k = np.where(straight, 1.0, curvature)
-    dx = np.where(straight, distance * np.cos(h), (np.sin(h + turn) - np.sin(h)) / k)
-    dy = np.where(straight, distance * np.sin(h), (np.cos(h) - np.cos(h + turn)) / k)
-    return np.stack([x + dx, y + dy, h + turn], axis=1)
+    u = 0.5 * distance[:, None] * (1.0 + _NODES)  # (M, 16) quadrature points along the way
+    heading = h[:, None] + curvature[:, None] * u + 0.5 * rate[:, None] * u**2
+    w = 0.5 * distance[:, None] * _WEIGHTS
+    dx, dy = np.sum(w * np.cos(heading), axis=1), np.sum(w * np.sin(heading), axis=1)
+    return np.stack([x + dx, y + dy, h + curvature * distance + 0.5 * rate * distance**2], axis=1)
 
 
 @dataclass(frozen=True, eq=False)
