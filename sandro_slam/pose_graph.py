@@ -48,6 +48,9 @@ GNC_MU_STEP = {"gnc_tls": 2.0, "gnc_gm": 1.4}  # factor on GNC's control paramet
 REFINE_RELATIVE_TOL = 1e-10  # of the final LM on the kept factors: soft graphs (parking-garage) move metres
 # for a relative cost change of 1e-5, gtsam's default
 MIN_LOOPS_FOR_SCALE = 10  # kept loops needed to estimate their variance factor
+READMIT_SIGMAS = 7.0  # noise_scale 'estimated': a rejected loop comes back when its log squared error is within
+# this many robust standard deviations of the kept loops' (parking-garage: real loops reach 4.7, outliers start
+# at 10)
 
 
 def robust_optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, known_inliers: list[int],
@@ -64,7 +67,8 @@ def robust_optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, kn
     1e-5 and 1.4, 4x faster). GM ends when its control parameter reaches 1, not on gtsam's relative cost test,
     which stopped it in its first, near-convex steps with every weight still 1.
     With `noise_scale: estimated`, a second GNC run takes the threshold times the variance factor of the loops
-    the first kept (`variance_factor`), for graphs whose covariances are not to scale.
+    the first kept (`variance_factor`), for graphs whose covariances are not to scale, and loops it rejected
+    that fit as well as the heavy tail of those it kept come back (`readmitted`).
     none: plain Levenberg-Marquardt, every weight 1.
     """
     if config.robust == "none":
@@ -74,6 +78,7 @@ def robust_optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, kn
         scale = variance_factor(graph, values, weights, known_inliers)
         if scale != 1.0:  # 1: too few loops to tell, and a second run would repeat the first
             values, weights = _gnc(graph, initial, known_inliers, config, scale)
+            weights = readmitted(graph, values, weights, known_inliers)
     kept = gtsam.NonlinearFactorGraph()
     for index in np.flatnonzero(weights >= 0.5):
         kept.add(graph.at(int(index)))
@@ -99,6 +104,29 @@ def variance_factor(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, wei
     factors = [graph.at(int(i)) for i in kept]
     whitened = [2.0 * factor.error(values) / chi2.median(factor.dim()) for factor in factors]
     return float(np.median(whitened))
+
+
+def readmitted(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, weights: np.ndarray,
+               known_inliers: list[int]) -> np.ndarray:
+    """`weights` with weight 1 for every loop whose squared whitened error at `values` lies within
+    `READMIT_SIGMAS` robust standard deviations (1.4826 x median absolute deviation, in log10) above the
+    median of the kept loops'; the others keep their weight.
+
+    A threshold at a chi-square quantile of the estimated scale cuts real loops when their errors are
+    heavy-tailed: parking-garage's largest is 200x their median (4615 chi-square draws: about 5x), the
+    outliers' smallest 10^5x. In log space that tail is 4.7 robust sigmas, the outliers 10.
+    """
+    known = set(known_inliers)
+    loops = np.array([i for i in range(graph.size()) if i not in known], dtype=int)
+    log_error = np.log10([max(2.0 * graph.at(int(i)).error(values), 1e-300) for i in loops])
+    kept = weights[loops] >= 0.5
+    if kept.sum() < MIN_LOOPS_FOR_SCALE:
+        return weights
+    median = np.median(log_error[kept])
+    sigma = 1.4826 * np.median(np.abs(log_error[kept] - median))
+    out = weights.copy()
+    out[loops[log_error <= median + READMIT_SIGMAS * sigma]] = 1.0
+    return out
 
 
 def _gnc(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, known_inliers: list[int], config: GraphConfig,

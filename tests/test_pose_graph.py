@@ -7,7 +7,8 @@ import pytest
 from pipelines.synthetic import random_transform, transform_points
 from sandro_core import SandroConfig, register
 from sandro_slam.config import GraphConfig
-from sandro_slam.pose_graph import PoseGraph, between_factor, odometry_covariance, robust_optimize, variance_factor
+from sandro_slam.pose_graph import (PoseGraph, between_factor, odometry_covariance, readmitted, robust_optimize,
+                                     variance_factor)
 
 
 def test_loop_factor_whitened_error_matches_registration_monte_carlo():
@@ -127,17 +128,18 @@ def test_a_loop_holds_only_when_the_estimate_already_satisfies_it():
         assert graph.holds(loop) == (loop.factor_index not in false_factors)
 
 
-def _loose_graph(seed: int = 0):
+def _loose_graph(seed: int = 0, tail: float = 1.0):
     """A circle of 40 poses whose odometry and 60 true loops state 100x the standard deviation of their real
-    noise (like parking-garage's), plus 6 wrong loops 2.5 m and a few degrees off: within the stated noise."""
+    noise (like parking-garage's), plus 6 wrong loops 2.5 m and a few degrees off: within the stated noise.
+    Every 10th true loop has `tail` times the noise of the others (real loops' errors are heavy-tailed)."""
     rng = np.random.default_rng(seed)
     truth, _ = _chain(40, rng, drift=0.0)
     stated = np.array([0.5] * 3 + [1.0] * 3)  # [rad] and [m]
     noise = gtsam.noiseModel.Diagonal.Sigmas(stated)
 
-    def measured(a: int, b: int, offset: np.ndarray | None = None) -> gtsam.Pose3:
+    def measured(a: int, b: int, offset: np.ndarray | None = None, factor: float = 1.0) -> gtsam.Pose3:
         exact = gtsam.Pose3(np.linalg.inv(truth[a]) @ truth[b])
-        delta = rng.normal(scale=stated / 100.0) if offset is None else offset
+        delta = rng.normal(scale=factor * stated / 100.0) if offset is None else offset
         return exact.compose(gtsam.Pose3.Expmap(delta))
 
     graph = gtsam.NonlinearFactorGraph()
@@ -149,8 +151,9 @@ def _loose_graph(seed: int = 0):
         graph.add(gtsam.BetweenFactorPose3(i - 1, i, step, noise))
         initial.insert(i, initial.atPose3(i - 1).compose(step))
     known = list(range(graph.size()))
-    for a, b in [(i, (i + 10) % 40) for i in range(40)] + [(i, i + 20) for i in range(20)]:
-        graph.add(gtsam.BetweenFactorPose3(a, b, measured(a, b), noise))
+    pairs = [(i, (i + 10) % 40) for i in range(40)] + [(i, i + 20) for i in range(20)]
+    for n, (a, b) in enumerate(pairs):
+        graph.add(gtsam.BetweenFactorPose3(a, b, measured(a, b, factor=tail if n % 10 == 0 else 1.0), noise))
     wrong = []
     for _ in range(6):
         a, b = sorted(rng.choice(40, 2, replace=False))
@@ -170,6 +173,21 @@ def test_estimated_noise_scale_rejects_wrong_loops_that_loose_covariances_let_pa
     assert set(wrong) <= rejected and len(rejected - set(wrong)) <= 1
     errors = [np.linalg.norm(values.atPose3(i).translation() - truth[i][:3, 3]) for i in range(40)]
     assert max(errors) < 0.1  # 1-1.5 m with the given covariances
+
+
+def test_readmitted_gives_back_loops_within_the_kept_loops_spread_only():
+    graph, initial, known, wrong, _ = _loose_graph(tail=5.0)
+    clean = gtsam.NonlinearFactorGraph()
+    for i in range(graph.size()):
+        if i not in wrong:
+            clean.add(graph.at(i))
+    values = gtsam.LevenbergMarquardtOptimizer(clean, initial).optimize()
+    tail = [len(known) + n for n in range(0, 60, 10)]
+    weights = np.ones(graph.size())
+    weights[wrong + tail] = 0.0
+    out = readmitted(graph, values, weights, known)
+    assert np.all(out[tail] == 1.0) and np.all(out[wrong] == 0.0)
+    assert np.array_equal(readmitted(graph, values, weights, list(range(graph.size() - 8))), weights)  # too few
 
 
 def test_variance_factor_of_a_clean_graph_is_its_noise_ratio_squared():
