@@ -28,7 +28,7 @@ import gtsam
 import numpy as np
 
 from pipelines.atomic_write import atomic_path
-from pipelines.bench_common import default_out_dir, write_csv
+from pipelines.bench_common import UsageError, default_out_dir, write_csv
 from pipelines.bench_slam_bags import bag_experiment
 from pipelines.kiss_slam_baseline import kiss_slam_available, run_kiss_slam
 from pipelines.simulation import simulate_sequence
@@ -58,6 +58,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark; returns the exit code."""
+    if args.repeats < 1:
+        raise UsageError(f"--repeats {args.repeats}: expected at least 1")
     config = load_config(args.config)
     out = args.out or default_out_dir("bench_slam")
     out.mkdir(parents=True, exist_ok=True)
@@ -66,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
 
     kiss_slam = not args.no_kiss_slam and kiss_slam_available()
     fps: dict[str, list[float]] = {"sandro_slam": [], "kiss_slam": []}
-    for repeat in range(max(1, args.repeats)):
+    for repeat in range(args.repeats):
         result = OfflineSlam(config).run(frames, progress=True)
         n = len(result.timestamps)
         fps["sandro_slam"].append(n / result.timings["total"])
