@@ -97,8 +97,8 @@ def variance_factor(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, wei
     Example: parking-garage's loops state 1 m and 29 deg standard deviations and fit to millimetres; with
     those covariances any wrong loop within a few metres of the truth passes as an inlier.
     """
-    known = set(known_inliers)
-    kept = [i for i in np.flatnonzero(weights >= 0.5) if int(i) not in known]
+    loops = _loop_indices(graph, known_inliers)
+    kept = loops[weights[loops] >= 0.5]
     if len(kept) < MIN_LOOPS_FOR_SCALE:
         return 1.0
     factors = [graph.at(int(i)) for i in kept]
@@ -116,8 +116,7 @@ def readmitted(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, weights:
     heavy-tailed: parking-garage's largest is 200x their median (4615 chi-square draws: about 5x), the
     outliers' smallest 10^5x. In log space that tail is 4.7 robust sigmas, the outliers 10.
     """
-    known = set(known_inliers)
-    loops = np.array([i for i in range(graph.size()) if i not in known], dtype=int)
+    loops = _loop_indices(graph, known_inliers)
     log_error = np.log10([max(2.0 * graph.at(int(i)).error(values), 1e-300) for i in loops])
     kept = weights[loops] >= 0.5
     if kept.sum() < MIN_LOOPS_FOR_SCALE:
@@ -127,6 +126,12 @@ def readmitted(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, weights:
     out = weights.copy()
     out[loops[log_error <= median + READMIT_SIGMAS * sigma]] = 1.0
     return out
+
+
+def _loop_indices(graph: gtsam.NonlinearFactorGraph, known_inliers: list[int]) -> np.ndarray:
+    """Indices of the factors the robust back end judges: all but the known inliers."""
+    known = set(known_inliers)
+    return np.array([i for i in range(graph.size()) if i not in known], dtype=int)
 
 
 def _gnc(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, known_inliers: list[int], config: GraphConfig,
@@ -147,8 +152,7 @@ def _gnc(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, known_inliers
     if scale == 1.0:
         optimizer.setInlierCostThresholdsAtProbability(config.inlier_probability)
     else:  # gtsam takes one threshold for all factors when it is not by probability
-        known = set(known_inliers)
-        dims = {graph.at(i).dim() for i in range(graph.size()) if i not in known}
+        dims = {graph.at(int(i)).dim() for i in _loop_indices(graph, known_inliers)}
         if len(dims) != 1:
             raise ValueError(f"noise_scale 'estimated' needs loop factors of one dimension, got {sorted(dims)}")
         optimizer.setInlierCostThresholds(0.5 * chi2.ppf(config.inlier_probability, dims.pop()) * scale)

@@ -36,22 +36,16 @@ class Route:
         """Per segment: start (x, y, heading) (S, 3), length (S,) [m], curvature at its start (S,) [1/m]
         and curvature rate (S,) [1/m^2]."""
         r, ramp = self.corner_radius, self.transition
-        arc = 0.5 * np.pi * r - ramp
         rate = 1.0 / (r * ramp) if ramp > 0.0 else 0.0
-        turn = (np.array([ramp, arc, ramp]), np.array([0.0, 1 / r, 1 / r]), np.array([rate, 0.0, -rate]))
+        turn = [(ramp, 0.0, rate), (0.5 * np.pi * r - ramp, 1 / r, 0.0), (ramp, 1 / r, -rate)]  # (length, k0, rate)
         state = np.zeros((1, 3))
-        for length, k0, dk in zip(*turn):
-            state = _advance(state, np.array([length]), np.array([k0]), np.array([dk]))
+        for segment in turn:
+            state = _advance(state, *(np.array([value]) for value in segment))
         extent = state[0, 0]  # a symmetric turn reaches as far along its entry as across it
         width, height = self.xmax - self.xmin, self.ymax - self.ymin
         sides = [0.5 * width - extent, height - 2 * extent, width - 2 * extent, height - 2 * extent]
-        lengths, k0s, rates = [], [], []
-        for side in sides:
-            lengths += [side, *turn[0]]
-            k0s += [0.0, *turn[1]]
-            rates += [0.0, *turn[2]]
-        lengths, k0s, rates = [*lengths, sides[0]], [*k0s, 0.0], [*rates, 0.0]
-        lengths, k0s, rates = np.array(lengths), np.array(k0s), np.array(rates)
+        segments = [piece for side in sides for piece in [(side, 0.0, 0.0), *turn]] + [(sides[0], 0.0, 0.0)]
+        lengths, k0s, rates = np.array(segments).T
         starts = np.zeros((len(lengths), 3))
         starts[0] = [0.5 * (self.xmin + self.xmax), self.ymin, 0.0]
         for k in range(1, len(lengths)):
