@@ -12,9 +12,10 @@ the first pose):
         relative pose (translation uniform in a ball of 5 m, rotation about a random axis by up to
         +-30 deg; 2D: a disc and a yaw) with the noise model of a typical real loop (median log-det of
         the information). Seeded by (seed, graph name, rate).
-    methods: gnc_tls, gnc_gm (`sandro_slam.pose_graph.robust_optimize`, prior and odometry as known
-        inliers), gnc_tls_scaled (gnc_tls with `noise_scale: estimated`), lm (plain), huber (k = 1.345) and
-        cauchy (k = 2.3849) on every loop edge only; k are the 95 %-efficiency constants, on whitened residuals.
+    methods: gnc_tls (sandro_slam's default back end: `sandro_slam.pose_graph.robust_optimize` with
+        `noise_scale: estimated`, prior and odometry as known inliers), gnc_tls_given and gnc_gm (TLS and
+        Geman-McClure with the covariances as given), lm (plain), huber (k = 1.345) and cauchy (k = 2.3849) on
+        every loop edge only; k are the 95 %-efficiency constants, on whitened residuals.
     metrics against the reference: translation RMSE and max [m] (no alignment: the prior fixes the first
         pose), rotation RMSE [deg], pose_rel = translation RMSE / trajectory scale (RMS distance of the
         reference positions from their centroid), cost_rel = |clean cost at the result - reference cost| /
@@ -47,7 +48,12 @@ from pipelines.bench_common import UsageError, default_out_dir, parse_int_list, 
 from sandro_slam.config import GraphConfig  # noqa: E402
 from sandro_slam.pose_graph import robust_optimize  # noqa: E402
 
-METHODS = ("gnc_tls", "gnc_tls_scaled", "gnc_gm", "lm", "huber", "cauchy")
+BACK_ENDS = {  # GNC methods: the robust back end's configuration
+    "gnc_tls": GraphConfig(robust="gnc_tls"),
+    "gnc_tls_given": GraphConfig(robust="gnc_tls", noise_scale="given"),
+    "gnc_gm": GraphConfig(robust="gnc_gm", noise_scale="given"),
+}
+METHODS = (*BACK_ENDS, "lm", "huber", "cauchy")
 INITS = ("file", "odometry")  # initial values of the corrupted graph: the file's, or the odometry chain
 KERNELS = {"huber": 1.345, "cauchy": 2.3849}  # mEstimator constants on whitened residuals
 PRIOR_SIGMA = 1e-3  # [rad], [m], on the first pose
@@ -214,11 +220,8 @@ def _robust_loops(graph: gtsam.NonlinearFactorGraph, first_loop: int, method: st
 def optimize(method: str, graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
              known_inliers: list[int]) -> tuple[gtsam.Values, np.ndarray | None]:
     """Run one method; returns the values and, for GNC, the weight per factor."""
-    if method.startswith("gnc_"):
-        scaled = method.endswith("_scaled")
-        config = GraphConfig(robust=method.removesuffix("_scaled"), inlier_probability=0.99,
-                             noise_scale="estimated" if scaled else "given")
-        return robust_optimize(graph, initial, known_inliers, config)
+    if method in BACK_ENDS:
+        return robust_optimize(graph, initial, known_inliers, BACK_ENDS[method])
     if method in KERNELS:
         graph = _robust_loops(graph, len(known_inliers), method)
     return gtsam.LevenbergMarquardtOptimizer(graph, initial).optimize(), None

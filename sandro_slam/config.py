@@ -63,8 +63,9 @@ class GraphConfig(StrictModel):
         0.99, gt=0.0, lt=1.0, description="chi-square probability of a loop's whitened error being an inlier"
     )
     noise_scale: Literal["given", "estimated"] = Field(
-        "given", description="loops' covariances as given, or rescaled by the variance factor of those a first "
-        "robust pass keeps (for graphs whose covariances are not to scale)"
+        "estimated", description="loops' covariances as given, or also a second robust pass rescaled by the "
+        "variance factor of the loops the first keeps, taken when it keeps most of them and fits them clearly "
+        "better (for covariances not to scale)"
     )
     prior_sigma: float = Field(1e-3, gt=0.0, description="std of the first pose, rad and m")
     odometry_translation_sigma_per_m: float = Field(0.01, gt=0.0, description="[m] per m travelled")

@@ -3,12 +3,13 @@
 import gtsam
 import numpy as np
 import pytest
+from scipy.stats import chi2
 
 from pipelines.synthetic import random_transform, transform_points
 from sandro_core import SandroConfig, register
 from sandro_slam.config import GraphConfig
-from sandro_slam.pose_graph import (PoseGraph, between_factor, odometry_covariance, readmitted, robust_optimize,
-                                     variance_factor)
+from sandro_slam.pose_graph import (PoseGraph, _gnc, _refined, _scaled_run_wins, between_factor, odometry_covariance,
+                                     readmitted, robust_optimize, variance_factor)
 
 
 def test_loop_factor_whitened_error_matches_registration_monte_carlo():
@@ -34,15 +35,21 @@ def test_loop_factor_whitened_error_matches_registration_monte_carlo():
     assert 4.5 <= np.mean(squared) <= 7.5
 
 
-def _chain(n: int, rng: np.random.Generator, drift: float):
-    """Ground truth on a circle of keyframes and odometry with a small rotational drift per step."""
+def _circle(n: int, radius: float) -> list[np.ndarray]:
+    """n poses T_world_pose evenly around a circle of `radius` [m], heading along it."""
     truth = []
     for i in range(n):
         angle = 2 * np.pi * i / n
         T = np.eye(4)
         T[:3, :3] = gtsam.Rot3.Yaw(angle + np.pi / 2).matrix()
-        T[:3, 3] = [30 * np.cos(angle), 30 * np.sin(angle), 0.0]
+        T[:3, 3] = [radius * np.cos(angle), radius * np.sin(angle), 0.0]
         truth.append(T)
+    return truth
+
+
+def _chain(n: int, rng: np.random.Generator, drift: float):
+    """Ground truth on a circle of keyframes and odometry with a small rotational drift per step."""
+    truth = _circle(n, 30.0)
     odometry = [truth[0]]
     bias = gtsam.Pose3(gtsam.Rot3.Yaw(drift), gtsam.Point3(0.05, 0.0, 0.0)).matrix()
     for i in range(1, n):
@@ -166,7 +173,7 @@ def _loose_graph(seed: int = 0, tail: float = 1.0):
 
 def test_estimated_noise_scale_rejects_wrong_loops_that_loose_covariances_let_pass():
     graph, initial, known, wrong, truth = _loose_graph()
-    _, given = robust_optimize(graph, initial, known, GraphConfig(robust="gnc_tls"))
+    _, given = robust_optimize(graph, initial, known, GraphConfig(robust="gnc_tls", noise_scale="given"))
     assert np.all(given[wrong] >= 0.5)  # within 2.5 m of the truth: inliers by the stated 1 m
     values, weights = robust_optimize(graph, initial, known, GraphConfig(robust="gnc_tls", noise_scale="estimated"))
     rejected = set(np.flatnonzero(weights < 0.5))
@@ -200,3 +207,61 @@ def test_variance_factor_of_a_clean_graph_is_its_noise_ratio_squared():
     values = gtsam.LevenbergMarquardtOptimizer(clean, initial).optimize()
     assert 0.3e-4 < variance_factor(graph, values, weights, known) < 3e-4  # (1/100)^2
     assert variance_factor(graph, values, weights, list(range(graph.size() - 8))) == 1.0  # too few loops
+
+
+def _sparse_heavy_tailed_graph():
+    """A circle of 200 poses with drifting odometry and 15 true loops across it whose errors spread over two
+    orders of magnitude, all within 1/8 of their stated noise (like kitti_00's: few loops, heavy tail)."""
+    rng = np.random.default_rng(0)
+    n = 200
+    truth = _circle(n, 50.0)
+    stated = np.array([0.05] * 3 + [0.5] * 3)
+    noise = gtsam.noiseModel.Diagonal.Sigmas(stated)
+
+    def measured(a: int, b: int, factor: float) -> gtsam.Pose3:
+        exact = gtsam.Pose3(np.linalg.inv(truth[a]) @ truth[b])
+        return exact.compose(gtsam.Pose3.Expmap(rng.normal(scale=factor * stated / 8.0)))
+
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(truth[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-3)))
+    initial = gtsam.Values()
+    initial.insert(0, gtsam.Pose3(truth[0]))
+    drift = gtsam.Pose3(gtsam.Rot3.Yaw(0.003), gtsam.Point3(0.0, 0.0, 0.0))
+    for i in range(1, n):
+        step = measured(i - 1, i, 1.0)
+        graph.add(gtsam.BetweenFactorPose3(i - 1, i, step, noise))
+        initial.insert(i, initial.atPose3(i - 1).compose(step).compose(drift))
+    known = list(range(graph.size()))
+    for _ in range(15):
+        a = int(rng.integers(0, n))
+        b = (a + n // 2 + int(rng.integers(-20, 20))) % n
+        graph.add(gtsam.BetweenFactorPose3(a, b, measured(a, b, 10 ** rng.uniform(-1.0, 1.0)), noise))
+    return graph, initial, known
+
+
+def test_estimated_noise_scale_keeps_the_first_result_when_the_scaled_run_rejects_most_loops():
+    """kitti_00's case."""
+    graph, initial, known = _sparse_heavy_tailed_graph()
+    config = GraphConfig(robust="gnc_tls", noise_scale="estimated")
+    first_values, first = _gnc(graph, initial, known, config)
+    scale = variance_factor(graph, first_values, first, known)
+    _, scaled = _gnc(graph, initial, known, config, 0.5 * chi2.ppf(config.inlier_probability, 6) * scale)
+    loops = np.arange(len(known), graph.size())
+    assert np.all(first[loops] >= 0.5) and np.mean(scaled[loops] >= 0.5) < 0.5  # the scaled run alone cuts most
+    _, weights = robust_optimize(graph, initial, known, config)
+    np.testing.assert_array_equal(weights >= 0.5, first >= 0.5)
+
+
+def test_the_scaled_result_wins_only_when_the_loops_it_dropped_were_bending_the_others():
+    graph, initial, known, wrong, _ = _loose_graph(tail=5.0)
+    every = np.ones(graph.size())
+    with_wrong = _refined(graph, initial, every)
+    without_wrong = every.copy()
+    without_wrong[wrong] = 0.0
+    clean = _refined(graph, initial, without_wrong)
+    assert _scaled_run_wins(graph, with_wrong, every, clean, without_wrong, known)  # parking-garage's case
+    tail = [len(known) + n for n in range(0, 60, 10)]
+    without_tail = without_wrong.copy()
+    without_tail[tail] = 0.0  # real loops with 5x the noise: dropping them changes little (sphere2500's case)
+    assert not _scaled_run_wins(graph, clean, without_wrong, _refined(graph, clean, without_tail), without_tail,
+                                known)
