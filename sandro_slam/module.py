@@ -109,7 +109,7 @@ class LoopClosureModule:
             # The estimate steers the candidate search of the keyframes to come: re-optimise when a new loop
             # does not hold at it yet (skips about half of them on the simulated drive).
             if not all(self.pose_graph.holds(loop.factor) for loop in closed):
-                self.pose_graph.optimize()
+                self.pose_graph.update_estimate()
         return closed
 
     def optimize(self) -> dict[int, np.ndarray]:

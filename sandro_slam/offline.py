@@ -95,12 +95,13 @@ class OfflineSlam:
         correction = None  # KISS-ICP's frame -> the re-registered start's, once it is known
         for index, frame in enumerate(iterator):
             stamp, points, times = _unpack(frame, index)
-            finite = np.all(np.isfinite(points), axis=1)
-            if not finite.any():
-                skipped.append(index)
-                continue
-            points = points[finite]
-            times = times[finite] if len(times) else times
+            if len(points) == 0 or not np.isfinite(points.sum()):  # one reduction for clean frames (0.4 s on 800)
+                finite = np.all(np.isfinite(points), axis=1)
+                if not finite.any():
+                    skipped.append(index)
+                    continue
+                points = points[finite]
+                times = times[finite] if len(times) else times
             tic = time.perf_counter()
             deskewed, _ = odometry.register_frame(points, times)
             pose = odometry.last_pose.copy()

@@ -267,6 +267,17 @@ class PoseGraph:
             self._estimate = self._robust_optimize(self.values)
         return {key: self._estimate.atPose3(key).matrix() for key in self._estimate.keys()}
 
+    def update_estimate(self) -> None:
+        """Re-optimise for the estimate alone, cheaper than `optimize`, which decides the loops afresh: in batch
+        mode from the latest estimate rather than the odometry, and with the stated loop covariances
+        (noise_scale 'given': no second GNC run). What the loop closure module needs to steer its candidate
+        search between keyframes."""
+        if self._isam is not None:
+            self._optimize_incremental()
+        elif self.values.size() > 0:
+            given = self.config.model_copy(update={"noise_scale": "given"})
+            self._estimate = self._robust_optimize(self._estimate, given)
+
     def estimate(self, key: int) -> np.ndarray:
         """The latest estimate of T_world_keyframe for `key`."""
         return self._estimate.atPose3(key).matrix()
@@ -281,10 +292,10 @@ class PoseGraph:
         """Loops the robust back end weighted below 0.5 in the last optimisation."""
         return [loop for loop in self.loops if loop.weight < 0.5]
 
-    def _robust_optimize(self, initial: gtsam.Values) -> gtsam.Values:
+    def _robust_optimize(self, initial: gtsam.Values, config: GraphConfig | None = None) -> gtsam.Values:
         if not self.loops:
             return gtsam.LevenbergMarquardtOptimizer(self.graph, initial).optimize()
-        result, weights = robust_optimize(self.graph, initial, self._known_inliers, self.config)
+        result, weights = robust_optimize(self.graph, initial, self._known_inliers, config or self.config)
         for loop in self.loops:
             loop.weight = float(weights[loop.factor_index])
         return result
