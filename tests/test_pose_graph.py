@@ -58,15 +58,16 @@ def _chain(n: int, rng: np.random.Generator, drift: float):
     return truth, odometry
 
 
-def _graph(mode: str, robust: str, n_false: int, seed: int = 0):
-    """A 40-keyframe circle with drifting odometry, 11 true and `n_false` wrong loops, not optimised yet (but
-    for ISAM2's updates): (graph, truth, odometry, indices of the wrong loop factors)."""
+def _graph(mode: str, robust: str, n_false: int, seed: int = 0, loop_sigmas: tuple[float, float] = (0.01, 0.1)):
+    """A 40-keyframe circle with drifting odometry, 11 true and `n_false` wrong loops (standard deviations
+    `loop_sigmas`: rotation [rad], translation [m]), not optimised yet (but for ISAM2's updates): (graph,
+    truth, odometry, indices of the wrong loop factors)."""
     rng = np.random.default_rng(seed)
     n = 40
     truth, odometry = _chain(n, rng, drift=0.01)
     config = GraphConfig(mode=mode, robust=robust)
     graph = PoseGraph(config)
-    loop_cov = np.diag([1e-4] * 3 + [1e-2] * 3)
+    loop_cov = np.diag([loop_sigmas[0] ** 2] * 3 + [loop_sigmas[1] ** 2] * 3)
     true_pairs = [(i, n - 8 + i) for i in range(6)] + [(i, i + n // 2) for i in range(0, 5)]
     false_pairs = [tuple(sorted(rng.choice(n, 2, replace=False))) for _ in range(n_false)]
     loops_at = {}
@@ -111,6 +112,15 @@ def test_false_loops_are_rejected(robust):
     _, _, clean_error, _, _ = _build("batch", robust, n_false=0)
     assert {loop.factor_index for loop in graph.rejected_loops()} == false_factors
     assert error <= 1.1 * clean_error + 0.01
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_false_loops_with_tight_covariances_are_rejected(seed):
+    """Registration covariances are tight: a wrong loop then leaves a residual in GNC's first (least-squares)
+    step so large that every real loop starts at a weight near 0, which must not pass for convergence."""
+    graph, _, _, false_factors = _graph("batch", "gnc_tls", n_false=8, seed=seed, loop_sigmas=(0.002, 0.02))
+    graph.optimize()
+    assert {loop.factor_index for loop in graph.rejected_loops()} == false_factors
 
 
 def test_plain_least_squares_is_hurt_by_false_loops():
