@@ -73,11 +73,13 @@ def robust_optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, kn
     parameter, which changes by `GNC_MU_STEP`: each step starts from the last, so the steps together still
     converge (TLS on sphere2500 with 10 % outlier loops: the same result as gtsam's defaults of 100 iterations,
     1e-5 and 1.4, 4x faster). GM ends when its control parameter reaches 1, not on gtsam's relative cost test,
-    which stopped it in its first, near-convex steps with every weight still 1.
+    which stopped it in its first, near-convex steps with every weight still 1. TLS ends on its control
+    parameter or cost, not when its weights look binary (`GNC_WEIGHTS_TOL`).
     With `noise_scale: estimated`, for graphs whose covariances are not to scale: when the loops the first run
     kept fit better than their covariances say (`variance_factor` below 1), a second GNC run takes the
     threshold times that factor, loops it rejected that fit as well as the heavy tail of those it kept come
-    back (`readmitted`), and its result replaces the first when it keeps most of the loops the first kept and
+    back (`readmitted`), and its result replaces the first when it keeps more than `MIN_KEPT_SHARE` of the
+    loops the first kept and
     fits them clearly better (`_scaled_run_wins`). Graphs whose loops differ in dimension keep the first run
     (gtsam takes one threshold).
     none: plain Levenberg-Marquardt, every weight 1.
@@ -155,10 +157,10 @@ def _scaled_run_wins(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, we
     """Whether the scaled run's result replaces the first run's. It must keep more than `MIN_KEPT_SHARE` of
     the loops the first run kept: what it is for is the few outliers that loose covariances let pass, and a
     threshold that rejects many of the first run's loops cuts their own heavy tail (kitti_00: 34 of 137 real
-    loops kept) or real loops with a small shared bias (the demo drive: 12 of 22 kept). And the loops both runs kept must
-    fit at least `MIN_FIT_GAIN` times better (median squared error) without the ones it dropped: those were
-    bending the graph (parking-garage at 10 % outliers: 22x better), not just the tail of the real loops
-    (sphere2500: one real loop dropped, the others fit as well as before, the poses 3.5 % off).
+    loops kept) or real loops with a small shared bias (the demo drive: 12 of 22 kept). And the loops both
+    runs kept must fit at least `MIN_FIT_GAIN` times better (median squared error) without the ones it
+    dropped: those were bending the graph (parking-garage at 10 % outliers: 22x better), not just the tail of
+    the real loops (sphere2500: one real loop dropped, the others fit as well as before, the poses 3.5 % off).
     """
     loops = _loop_indices(len(weights), known_inliers)
     kept = loops[weights[loops] >= 0.5]
