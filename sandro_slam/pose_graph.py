@@ -79,9 +79,8 @@ def robust_optimize(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, kn
     kept fit better than their covariances say (`variance_factor` below 1), a second GNC run takes the
     threshold times that factor, loops it rejected that fit as well as the heavy tail of those it kept come
     back (`readmitted`), and its result replaces the first when it keeps more than `MIN_KEPT_SHARE` of the
-    loops the first kept and
-    fits them clearly better (`_scaled_run_wins`). Graphs whose loops differ in dimension keep the first run
-    (gtsam takes one threshold).
+    loops the first kept and fits them clearly better (`_scaled_run_wins`). Graphs whose loops differ in
+    dimension keep the first run (gtsam takes one threshold).
     none: plain Levenberg-Marquardt, every weight 1.
     """
     if config.robust == "none":

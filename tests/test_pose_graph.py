@@ -162,19 +162,25 @@ def test_a_loop_holds_only_when_the_estimate_already_satisfies_it():
         assert graph.holds(loop) == (loop.factor_index not in false_factors)
 
 
-def _loose_graph(seed: int = 0, tail: float = 1.0):
-    """A circle of 40 poses whose odometry and 60 true loops state 100x the standard deviation of their real
-    noise (like parking-garage's), plus 6 wrong loops 2.5 m and a few degrees off: within the stated noise.
-    Every 10th true loop has `tail` times the noise of the others (real loops' errors are heavy-tailed)."""
+LOOSE_LOOPS = [(i, (i + 10) % 40) for i in range(40)] + [(i, i + 20) for i in range(20)]  # _loose_graph's true loops
+
+
+def _loose_graph(seed: int = 0, tail: float = 1.0, n_wrong: int = 6, biased_below: int = 0):
+    """A circle of 40 poses whose odometry and 60 true loops (`LOOSE_LOOPS`) state 100x the standard deviation
+    of their real noise (like parking-garage's), plus `n_wrong` wrong loops 2.5 m and a few degrees off: within
+    the stated noise. Every 10th true loop has `tail` times the noise of the others (real loops' errors are
+    heavy-tailed); the loops from the poses below `biased_below` share a bias of 0.05 rad and 0.1 m, far
+    within the stated noise (the demo drive: real loops to its first keyframes, biased alike)."""
     rng = np.random.default_rng(seed)
     truth, _ = _chain(40, rng, drift=0.0)
     stated = np.array([0.5] * 3 + [1.0] * 3)  # [rad] and [m]
     noise = gtsam.noiseModel.Diagonal.Sigmas(stated)
 
-    def measured(a: int, b: int, offset: np.ndarray | None = None, factor: float = 1.0) -> gtsam.Pose3:
+    def measured(a: int, b: int, offset: np.ndarray | None = None, factor: float = 1.0,
+                 bias: np.ndarray | float = 0.0) -> gtsam.Pose3:
         exact = gtsam.Pose3(np.linalg.inv(truth[a]) @ truth[b])
         delta = rng.normal(scale=factor * stated / 100.0) if offset is None else offset
-        return exact.compose(gtsam.Pose3.Expmap(delta))
+        return exact.compose(gtsam.Pose3.Expmap(delta + bias))
 
     graph = gtsam.NonlinearFactorGraph()
     graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(truth[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-3)))
@@ -185,11 +191,12 @@ def _loose_graph(seed: int = 0, tail: float = 1.0):
         graph.add(gtsam.BetweenFactorPose3(i - 1, i, step, noise))
         initial.insert(i, initial.atPose3(i - 1).compose(step))
     known = list(range(graph.size()))
-    pairs = [(i, (i + 10) % 40) for i in range(40)] + [(i, i + 20) for i in range(20)]
-    for n, (a, b) in enumerate(pairs):
-        graph.add(gtsam.BetweenFactorPose3(a, b, measured(a, b, factor=tail if n % 10 == 0 else 1.0), noise))
+    bias = np.array([0.0, 0.0, 0.05, 0.1, 0.0, 0.0])
+    for n, (a, b) in enumerate(LOOSE_LOOPS):
+        loop = measured(a, b, factor=tail if n % 10 == 0 else 1.0, bias=bias if a < biased_below else 0.0)
+        graph.add(gtsam.BetweenFactorPose3(a, b, loop, noise))
     wrong = []
-    for _ in range(6):
+    for _ in range(n_wrong):
         a, b = sorted(rng.choice(40, 2, replace=False))
         direction = rng.normal(size=3)
         offset = np.concatenate([[0.0, 0.0, rng.uniform(0.03, 0.1)], direction / np.linalg.norm(direction) * 2.5])
@@ -273,41 +280,11 @@ def test_estimated_noise_scale_keeps_the_first_result_when_the_scaled_run_reject
     np.testing.assert_array_equal(weights >= 0.5, first >= 0.5)
 
 
-def _biased_graph():
-    """A circle of 40 poses, odometry and 60 true loops stating 100x the standard deviation of their real noise;
-    the 28 loops from the first 14 poses share a bias of 0.05 rad and 0.1 m, far within that noise (the demo
-    drive: real loops to its first keyframes, biased alike). Returns (graph, initial, known, biased)."""
-    rng = np.random.default_rng(0)
-    truth, _ = _chain(40, rng, drift=0.0)
-    stated = np.array([0.5] * 3 + [1.0] * 3)
-    noise = gtsam.noiseModel.Diagonal.Sigmas(stated)
-    bias = np.array([0.0, 0.0, 0.05, 0.1, 0.0, 0.0])
-
-    def measured(a: int, b: int, biased: bool) -> gtsam.Pose3:
-        exact = gtsam.Pose3(np.linalg.inv(truth[a]) @ truth[b])
-        return exact.compose(gtsam.Pose3.Expmap(rng.normal(scale=stated / 100.0) + (bias if biased else 0.0)))
-
-    graph = gtsam.NonlinearFactorGraph()
-    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(truth[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-3)))
-    initial = gtsam.Values()
-    initial.insert(0, gtsam.Pose3(truth[0]))
-    for i in range(1, 40):
-        step = measured(i - 1, i, False)
-        graph.add(gtsam.BetweenFactorPose3(i - 1, i, step, noise))
-        initial.insert(i, initial.atPose3(i - 1).compose(step))
-    known = list(range(graph.size()))
-    biased = []
-    for a, b in [(i, (i + 10) % 40) for i in range(40)] + [(i, i + 20) for i in range(20)]:
-        if a < 14:
-            biased.append(graph.size())
-        graph.add(gtsam.BetweenFactorPose3(a, b, measured(a, b, a < 14), noise))
-    return graph, initial, known, biased
-
-
 def test_estimated_noise_scale_keeps_real_loops_that_share_a_small_bias():
     """The scaled run drops the 28 biased loops and the others then fit 2.3x better, but 28 of 60 is no
     handful of outliers slipped through: the first run's result stands."""
-    graph, initial, known, biased = _biased_graph()
+    graph, initial, known, _, _ = _loose_graph(n_wrong=0, biased_below=14)
+    biased = [len(known) + n for n, (a, _) in enumerate(LOOSE_LOOPS) if a < 14]
     every = np.ones(graph.size())
     without_biased = every.copy()
     without_biased[biased] = 0.0
