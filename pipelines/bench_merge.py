@@ -20,6 +20,10 @@ Metrics of `two` and `three`, per session S after the first (A):
         trajectory onto its merged one; truth = each session's own trajectory fitted rigidly to ground truth.
     overlap_error_{m,deg}_S: median error of S's merged pose relative to the nearest (within 5 m, true
         positions) merged pose of A: how well the maps are registered where they overlap.
+    perfect_transform_error_{m,deg}_S, perfect_ate_merged_S, perfect_ate_ratio_S: the same for a reference
+        merge that registers perfectly and moves sessions rigidly: each session's own trajectory placed by the
+        rigid fit of its frames where they overlap A's onto A's own poses composed with the true relative pose
+        (`_perfectly_registered`). What is left there is the sessions' own SLAM errors.
     first_pose_error_{m,deg}_S: the session's first pose against where the rigid fit of its own trajectory
         to ground truth puts it (single-session SLAM, no merge).
     ate_single_S, ate_merged_S, ate_ratio_S: ATE of S's own run; ATE in the merged frame (one SE3 alignment
@@ -42,7 +46,7 @@ from pipelines.atomic_write import atomic_path
 from pipelines.bench_common import UsageError, default_out_dir, pose_errors, write_csv
 from pipelines.simulation import CityLayout, simulate_sequence
 from pipelines.slam import load_config
-from pipelines.trajectory_metrics import align_se3, ate
+from pipelines.trajectory_metrics import align_se3, ate, rigid_fit
 from sandro_slam import OfflineSlam, Session, SlamConfig, merge_sessions
 
 PITCH = CityLayout().pitch
@@ -53,6 +57,8 @@ ROUTES = {  # name: (loop, start distance [m])
 }
 WIDE = CityLayout(blocks_x=8)
 APART = {"A": ((0.0, 0.0, PITCH, PITCH), 0.0), "B": ((4 * PITCH, 0.0, 5 * PITCH, PITCH), 0.0)}
+OVERLAP_RADIUS = 5.0  # [m] a frame of S overlaps A's nearest frame within this distance (true positions)
+SCENE_REACH = 10.0  # [m] how far from a frame the reference merge's perfect registration holds (_perfectly_registered)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -142,24 +148,25 @@ def _accuracy(sessions, result) -> dict:
            "inter_session_loops_accepted": int(sum(lp.weight >= 0.5 for lp in result.loops))}
     if not result.ok:
         return out
-    estimates = np.concatenate([result.frame_poses[s.name] for s, _, _ in sessions])
-    truths = np.concatenate([truth for _, truth, _ in sessions])
-    aligned = align_se3(estimates, truths) @ estimates
-    offset = 0
-    for session, truth, T_frame_world in sessions:
-        n = len(truth)
-        error = aligned[offset:offset + n, :3, 3] - truth[:, :3, 3]
-        offset += n
+    truths = [truth for _, truth, _ in sessions]
+    placed = [np.eye(4)] + [_perfectly_registered(first.frame_poses(), sessions[0][1], s.frame_poses(), truth)
+                            for s, truth, _ in sessions[1:]]
+    merged_ate = _joint_ate([result.frame_poses[s.name] for s, _, _ in sessions], truths)
+    perfect_ate = _joint_ate([T @ s.frame_poses() for T, (s, _, _) in zip(placed, sessions)], truths)
+    for (session, truth, T_frame_world), T_placed, merged, perfect in zip(sessions, placed, merged_ate, perfect_ate):
         name = session.name
         out[f"ate_single_{name}"] = ate(session.frame_poses(), truth)
-        out[f"ate_merged_{name}"] = float(np.sqrt(np.mean(np.sum(error**2, axis=1))))
-        out[f"ate_ratio_{name}"] = out[f"ate_merged_{name}"] / out[f"ate_single_{name}"]
+        out[f"ate_merged_{name}"] = merged
+        out[f"ate_ratio_{name}"] = merged / out[f"ate_single_{name}"]
+        out[f"perfect_ate_merged_{name}"] = perfect
+        out[f"perfect_ate_ratio_{name}"] = perfect / out[f"ate_single_{name}"]
         fit = align_se3(session.frame_poses(), truth)
         _put(out, "first_pose_error", name, pose_errors(fit, np.linalg.inv(T_frame_world)))
         if session is first:
             continue
         T_true = T_first @ np.linalg.inv(T_frame_world)
         _put(out, "transform_error", name, pose_errors(result.T_merged_session[name], T_true))
+        _put(out, "perfect_transform_error", name, pose_errors(T_placed, T_true))
         fit_first = align_se3(first.frame_poses(), sessions[0][1])
         _put(out, "map_transform_error", name, pose_errors(align_se3(session.frame_poses(), result.frame_poses[name]),
                                                            np.linalg.inv(fit_first) @ fit))
@@ -174,18 +181,53 @@ def _put(out: dict, metric: str, name: str, errors: tuple[float, float]) -> None
     out[f"{metric}_m_{name}"], out[f"{metric}_deg_{name}"] = errors[1], errors[0]
 
 
-def _overlap_error(merged_a: np.ndarray, truth_a: np.ndarray, merged_s: np.ndarray, truth_s: np.ndarray,
-                   radius: float = 5.0) -> tuple[float, float]:
-    """Median (rotation [deg], translation [m]) error of S's poses relative to A's nearest pose within
-    `radius` [m] (true positions): the registration error where the sessions overlap; nan without overlap."""
+def _joint_ate(estimates: list[np.ndarray], truths: list[np.ndarray]) -> list[float]:
+    """ATE [m] of each (F, 4, 4) trajectory after one SE3 alignment of all of them together onto the truth."""
+    stacked, truth = np.concatenate(estimates), np.concatenate(truths)
+    errors = np.split((align_se3(stacked, truth) @ stacked)[:, :3, 3] - truth[:, :3, 3],
+                      np.cumsum([len(t) for t in truths])[:-1])
+    return [float(np.sqrt(np.mean(np.sum(e**2, axis=1)))) for e in errors]
+
+
+def _overlapping(truth_a: np.ndarray, truth_s: np.ndarray, radius: float = OVERLAP_RADIUS):
+    """(frames of S within `radius` [m] of a frame of A, that frame of A for each), by true position."""
     from scipy.spatial import cKDTree
 
     distance, nearest = cKDTree(truth_a[:, :3, 3]).query(truth_s[:, :3, 3])
     close = np.flatnonzero(distance < radius)
+    return close, nearest[close]
+
+
+def _perfectly_registered(poses_a: np.ndarray, truth_a: np.ndarray, poses_s: np.ndarray,
+                          truth_s: np.ndarray) -> np.ndarray:
+    """T (4x4, A's frame <- S's) of a rigid merge whose registration is perfect: where S's frames overlap A's,
+    each of S's frames belongs where A's nearest frame (A's own pose) and the true relative pose put it; T is
+    the rigid fit of what S's frames hold there, their origins and a point `SCENE_REACH` metres along each
+    of their axes, onto the same points of the frames where they belong (as registering the scans around
+    them would align them, which positions alone cannot do along a single straight street)."""
+    close, nearest = _overlapping(truth_a, truth_s)
+    if len(close) < 3:
+        raise ValueError(f"only {len(close)} frames of the session lie within {OVERLAP_RADIUS} m of the first's")
+    wanted = poses_a[nearest] @ np.linalg.inv(truth_a[nearest]) @ truth_s[close]
+    return rigid_fit(_scene_points(poses_s[close]), _scene_points(wanted))
+
+
+def _scene_points(poses: np.ndarray) -> np.ndarray:
+    """(4N, 3): each of the (N, 4, 4) poses' origin and the points `SCENE_REACH` along its x, y and z axes."""
+    offsets = np.vstack([np.zeros(3), SCENE_REACH * np.eye(3)])
+    return (poses[:, None, :3, :3] @ offsets[None, :, :, None])[..., 0].reshape(-1, 3) + \
+        np.repeat(poses[:, :3, 3], len(offsets), axis=0)
+
+
+def _overlap_error(merged_a: np.ndarray, truth_a: np.ndarray, merged_s: np.ndarray,
+                   truth_s: np.ndarray) -> tuple[float, float]:
+    """Median (rotation [deg], translation [m]) error of S's poses relative to A's nearest pose within
+    `OVERLAP_RADIUS` (true positions): the registration error where the sessions overlap; nan without overlap."""
+    close, nearest = _overlapping(truth_a, truth_s)
     if len(close) == 0:
         return float("nan"), float("nan")
-    errors = [pose_errors(np.linalg.inv(merged_a[nearest[f]]) @ merged_s[f],
-                          np.linalg.inv(truth_a[nearest[f]]) @ truth_s[f]) for f in close]
+    errors = [pose_errors(np.linalg.inv(merged_a[a]) @ merged_s[f], np.linalg.inv(truth_a[a]) @ truth_s[f])
+              for f, a in zip(close, nearest)]
     return tuple(float(v) for v in np.median(errors, axis=0))
 
 

@@ -6,8 +6,12 @@ import numpy as np
 
 
 def align_se3(estimate: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """4x4 T minimising sum ||T p_est - p_ref||^2 over the positions (Umeyama, no scale)."""
-    p, q = estimate[:, :3, 3], reference[:, :3, 3]
+    """4x4 T minimising sum ||T p_est - p_ref||^2 over the positions of (N, 4, 4) poses (Umeyama, no scale)."""
+    return rigid_fit(estimate[:, :3, 3], reference[:, :3, 3])
+
+
+def rigid_fit(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """4x4 T minimising sum ||T p_i - q_i||^2 over (N, 3) points (Umeyama, no scale)."""
     mp, mq = p.mean(axis=0), q.mean(axis=0)
     U, _, Vt = np.linalg.svd((q - mq).T @ (p - mp))
     D = np.eye(3)
