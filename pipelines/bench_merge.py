@@ -58,7 +58,7 @@ ROUTES = {  # name: (loop, start distance [m])
 WIDE = CityLayout(blocks_x=8)
 APART = {"A": ((0.0, 0.0, PITCH, PITCH), 0.0), "B": ((4 * PITCH, 0.0, 5 * PITCH, PITCH), 0.0)}
 OVERLAP_RADIUS = 5.0  # [m] a frame of S overlaps A's nearest frame within this distance (true positions)
-SCENE_REACH = 10.0  # [m] how far from a frame the reference merge's perfect registration holds (_perfectly_registered)
+SCENE_REACH = 10.0  # [m] how far from a frame the reference merge's perfect registration holds
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -215,8 +215,7 @@ def _perfectly_registered(poses_a: np.ndarray, truth_a: np.ndarray, poses_s: np.
 def _scene_points(poses: np.ndarray) -> np.ndarray:
     """(4N, 3): each of the (N, 4, 4) poses' origin and the points `SCENE_REACH` along its x, y and z axes."""
     offsets = np.vstack([np.zeros(3), SCENE_REACH * np.eye(3)])
-    return (poses[:, None, :3, :3] @ offsets[None, :, :, None])[..., 0].reshape(-1, 3) + \
-        np.repeat(poses[:, :3, 3], len(offsets), axis=0)
+    return (np.einsum("nij,kj->nki", poses[:, :3, :3], offsets) + poses[:, None, :3, 3]).reshape(-1, 3)
 
 
 def _overlap_error(merged_a: np.ndarray, truth_a: np.ndarray, merged_s: np.ndarray,

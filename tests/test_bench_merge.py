@@ -42,8 +42,8 @@ def test_error_free_sessions_are_placed_at_the_true_transform():
 
 def test_a_session_bent_away_from_the_overlap_keeps_its_own_error():
     """S's own map is right along the shared street but its north leg is rolled 0.3 deg about a point 6 m
-    north of the corner (beyond the overlap): registered perfectly on the street, the far end stays 0.18 m off, which is what the reference measures
-    (the sessions' own errors, not the merge's)."""
+    north of the corner (beyond the overlap): registered perfectly on the street, the far end stays 0.18 m
+    off, which is what the reference measures (the sessions' own errors, not the merge's)."""
     pivot = _transform(0.0, [20.0, 6.0, 0.0])
     bend = pivot @ _transform(0.0, [0.0, 0.0, 0.0], roll_deg=0.3) @ np.linalg.inv(pivot)
     north = TRUTH_S[:, 1, 3] > 6.0
