@@ -12,6 +12,9 @@ per-point times. Measured:
         pipeline runs, so that both times cover the pipeline alone, from its first frame to its final poses,
         and not the raycasting that makes the frames. sandro-slam and KISS-SLAM run in turn --repeats times
         and the median rate counts (a single run of either varies by up to 15 %);
+    loops against the truth: each verified loop's error against the true relative pose of its keyframes;
+        loops_wrong: those off by more than WRONG_LOOP_M or WRONG_LOOP_DEG (the front end's false positives,
+        e.g. a street that looks like another); how many of them and of the real ones the back end rejected;
     false loops: wrong loop factors (30 % more than the true ones: random keyframe pairs with plausible
         small transforms) added to sandro-slam's final graph, optimised by its robust back end and by plain
         least squares (what KISS-SLAM does): ATE and how many were rejected.
@@ -29,7 +32,7 @@ import gtsam
 import numpy as np
 
 from pipelines.atomic_write import atomic_path
-from pipelines.bench_common import UsageError, default_out_dir, write_csv
+from pipelines.bench_common import UsageError, default_out_dir, pose_errors, write_csv
 from pipelines.bench_slam_bags import bag_experiment
 from pipelines.kiss_slam_baseline import kiss_slam_available, run_kiss_slam
 from pipelines.simulation import simulate_sequence
@@ -39,6 +42,9 @@ from pipelines.trajectory_metrics import align_se3, ate
 from sandro_slam import OfflineSlam, SlamResult
 from sandro_slam.config import GraphConfig
 from sandro_slam.pose_graph import between_factor, robust_optimize
+
+WRONG_LOOP_M = 1.0  # a verified loop this far off the truth is a false positive of the front end
+WRONG_LOOP_DEG = 2.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -99,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
         "loop_closure_share_of_odometry": result.timings["loop_closure"] / result.timings["odometry"],
         "timings_s": result.timings,
         "loops_found_by": dict(Counter(loop.found_by for loop in result.loops)),
+        **loops_against_truth(result, truth),
     }
     trajectories = {"ground truth": truth, "KISS-ICP": result.odometry_poses, "sandro-slam": result.poses}
     if kiss_slam:
@@ -133,6 +140,23 @@ def keyframe_floor(result: SlamResult, truth: np.ndarray) -> float:
         fitted = align_se3(result.odometry_poses[mine], truth[mine]) @ result.odometry_poses[mine]
         squared.append(np.sum((fitted[:, :3, 3] - truth[mine][:, :3, 3]) ** 2, axis=1))
     return float(np.sqrt(np.mean(np.concatenate(squared))))
+
+
+def loops_against_truth(result: SlamResult, truth: np.ndarray) -> dict[str, float]:
+    """The verified loops against the true relative poses of their keyframes (`truth`: (F, 4, 4) at the
+    result's frames): median errors, the wrong ones (beyond WRONG_LOOP_M or WRONG_LOOP_DEG) and how many of
+    them, and of the real ones, the back end rejected."""
+    if not result.loops:
+        return {"loops_wrong": 0}
+    first_frame = {keyframe.key: keyframe.first_frame for keyframe in result.keyframes}
+    errors = np.array([pose_errors(loop.T_target_source, np.linalg.inv(truth[first_frame[loop.target_key]])
+                                   @ truth[first_frame[loop.source_key]]) for loop in result.loops])
+    wrong = (errors[:, 1] > WRONG_LOOP_M) | (errors[:, 0] > WRONG_LOOP_DEG)
+    rejected = np.array([loop.weight < 0.5 for loop in result.loops])
+    return {"loop_error_median_deg": float(np.median(errors[~wrong, 0])) if (~wrong).any() else float("nan"),
+            "loop_error_median_m": float(np.median(errors[~wrong, 1])) if (~wrong).any() else float("nan"),
+            "loops_wrong": int(wrong.sum()), "loops_wrong_rejected": int((wrong & rejected).sum()),
+            "loops_real_rejected": int((~wrong & rejected).sum())}
 
 
 def false_loop_experiment(result: SlamResult, truth: np.ndarray, graph_config: GraphConfig, ratio: float,

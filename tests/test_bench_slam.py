@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pipelines.bench import main
-from pipelines.bench_slam import keyframe_floor
+from pipelines.bench_slam import keyframe_floor, loops_against_truth
 from pipelines.bench_slam_bags import bag_experiment
 from sandro_slam import SlamConfig
 
@@ -53,3 +53,21 @@ def test_keyframe_floor_is_the_error_no_rigid_move_per_keyframe_removes():
     result.odometry_poses = bent
     floor = keyframe_floor(result, truth)
     assert 0.0 < floor < 0.3 / np.sqrt(6)  # the fit spreads the bend over the keyframe's three scans
+
+
+def test_loops_against_truth_tells_wrong_loops_from_real_ones():
+    truth = _poses(np.arange(0.0, 60.0, 10.0))  # six keyframes 10 m apart, one scan each
+    keyframes = [SimpleNamespace(key=k, first_frame=k) for k in range(6)]
+
+    def loop(target, source, offset, weight):
+        measured = np.linalg.inv(truth[target]) @ truth[source]
+        measured[0, 3] += offset
+        return SimpleNamespace(target_key=target, source_key=source, T_target_source=measured, weight=weight)
+
+    loops = [loop(0, 3, 0.02, 1.0), loop(1, 4, 0.04, 1.0), loop(2, 5, 0.06, 0.0),  # real, one rejected
+             loop(0, 5, 12.0, 0.0), loop(1, 5, -8.0, 1.0)]  # wrong (aliased streets), one kept
+    metrics = loops_against_truth(SimpleNamespace(keyframes=keyframes, loops=loops), truth)
+    assert metrics["loops_wrong"] == 2 and metrics["loops_wrong_rejected"] == 1
+    assert metrics["loops_real_rejected"] == 1
+    assert metrics["loop_error_median_m"] == pytest.approx(0.04)
+    assert metrics["loop_error_median_deg"] == pytest.approx(0.0, abs=1e-6)
