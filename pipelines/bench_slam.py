@@ -153,8 +153,8 @@ def loops_against_truth(result: SlamResult, truth: np.ndarray) -> dict[str, floa
                                    @ truth[first_frame[loop.source_key]]) for loop in result.loops])
     wrong = (errors[:, 1] > WRONG_LOOP_M) | (errors[:, 0] > WRONG_LOOP_DEG)
     rejected = np.array([loop.weight < 0.5 for loop in result.loops])
-    return {"loop_error_median_deg": float(np.median(errors[~wrong, 0])) if (~wrong).any() else float("nan"),
-            "loop_error_median_m": float(np.median(errors[~wrong, 1])) if (~wrong).any() else float("nan"),
+    median_deg, median_m = np.median(errors[~wrong], axis=0) if (~wrong).any() else (np.nan, np.nan)
+    return {"loop_error_median_deg": float(median_deg), "loop_error_median_m": float(median_m),
             "loops_wrong": int(wrong.sum()), "loops_wrong_rejected": int((wrong & rejected).sum()),
             "loops_real_rejected": int((~wrong & rejected).sum())}
 
