@@ -59,3 +59,12 @@ def test_sessions_that_do_not_overlap_have_no_reference():
     far = _drive((100.0, 0.0), 0.0)
     with pytest.raises(ValueError, match="within 5.0 m"):
         _perfectly_registered(TRUTH_A, TRUTH_A, far, far)
+
+
+def test_a_session_on_one_straight_street_gets_its_roll_from_the_frames_axes():
+    """Positions along one straight street leave the roll about it open; the frames' axes pin it."""
+    truth_s = _drive((10.0, 0.0), 0.0, 30)
+    T_s_world = _transform(40.0, [3.0, 4.0, 0.0], roll_deg=0.5)
+    T = _perfectly_registered(T_A_WORLD @ TRUTH_A, TRUTH_A, T_s_world @ truth_s, truth_s)
+    rotation_deg, translation_m = pose_errors(T, T_A_WORLD @ np.linalg.inv(T_s_world))
+    assert rotation_deg < 1e-4 and translation_m < 1e-9
