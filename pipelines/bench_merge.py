@@ -149,28 +149,28 @@ def _accuracy(sessions, result) -> dict:
     if not result.ok:
         return out
     truths = [truth for _, truth, _ in sessions]
-    placed = [np.eye(4)] + [_perfectly_registered(first.frame_poses(), sessions[0][1], s.frame_poses(), truth)
-                            for s, truth, _ in sessions[1:]]
+    own = [session.frame_poses() for session, _, _ in sessions]  # each session's single-session poses
+    fits = [align_se3(poses, truth) for poses, truth in zip(own, truths)]  # each onto its truth
+    placed = [np.eye(4)] + [_perfectly_registered(own[0], truths[0], poses, truth)
+                            for poses, truth in zip(own[1:], truths[1:])]
     merged_ate = _joint_ate([result.frame_poses[s.name] for s, _, _ in sessions], truths)
-    perfect_ate = _joint_ate([T @ s.frame_poses() for T, (s, _, _) in zip(placed, sessions)], truths)
-    for (session, truth, T_frame_world), T_placed, merged, perfect in zip(sessions, placed, merged_ate, perfect_ate):
+    perfect_ate = _joint_ate([T @ poses for T, poses in zip(placed, own)], truths)
+    for index, (session, truth, T_frame_world) in enumerate(sessions):
         name = session.name
-        out[f"ate_single_{name}"] = ate(session.frame_poses(), truth)
-        out[f"ate_merged_{name}"] = merged
-        out[f"ate_ratio_{name}"] = merged / out[f"ate_single_{name}"]
-        out[f"perfect_ate_merged_{name}"] = perfect
-        out[f"perfect_ate_ratio_{name}"] = perfect / out[f"ate_single_{name}"]
-        fit = align_se3(session.frame_poses(), truth)
-        _put(out, "first_pose_error", name, pose_errors(fit, np.linalg.inv(T_frame_world)))
-        if session is first:
+        out[f"ate_single_{name}"] = ate(own[index], truth)
+        out[f"ate_merged_{name}"] = merged_ate[index]
+        out[f"ate_ratio_{name}"] = merged_ate[index] / out[f"ate_single_{name}"]
+        out[f"perfect_ate_merged_{name}"] = perfect_ate[index]
+        out[f"perfect_ate_ratio_{name}"] = perfect_ate[index] / out[f"ate_single_{name}"]
+        _put(out, "first_pose_error", name, pose_errors(fits[index], np.linalg.inv(T_frame_world)))
+        if index == 0:
             continue
         T_true = T_first @ np.linalg.inv(T_frame_world)
         _put(out, "transform_error", name, pose_errors(result.T_merged_session[name], T_true))
-        _put(out, "perfect_transform_error", name, pose_errors(T_placed, T_true))
-        fit_first = align_se3(first.frame_poses(), sessions[0][1])
-        _put(out, "map_transform_error", name, pose_errors(align_se3(session.frame_poses(), result.frame_poses[name]),
-                                                           np.linalg.inv(fit_first) @ fit))
-        _put(out, "overlap_error", name, _overlap_error(result.frame_poses[first.name], sessions[0][1],
+        _put(out, "perfect_transform_error", name, pose_errors(placed[index], T_true))
+        _put(out, "map_transform_error", name, pose_errors(align_se3(own[index], result.frame_poses[name]),
+                                                           np.linalg.inv(fits[0]) @ fits[index]))
+        _put(out, "overlap_error", name, _overlap_error(result.frame_poses[first.name], truths[0],
                                                         result.frame_poses[name], truth))
     tested = [lp.conflict for lp in result.loops if not np.isnan(lp.conflict)]
     out["free_space_conflict_median"] = float(np.median(tested)) if tested else None
