@@ -35,10 +35,17 @@ class PlaceRecognition:
 
         self.config = config
         self._closures = MapClosures(MapClosuresConfig(inliers_threshold=config.map_closures_min_inliers))
+        self._last_seen: float | None = None  # path length [m] at the last keyframe MapClosures saw
 
     def candidates(self, key: int, points: np.ndarray, travelled: dict[int, float]) -> list[int]:
         """Add keyframe `key`'s submap (keyframe frame) and return earlier keyframes that look like it,
-        best first, skipping the last `exclude_recent` metres."""
+        best first, skipping the last `exclude_recent` metres. A keyframe less than `map_closures_spacing` metres
+        along the path from the last one added is neither added nor matched: at the defaults every other
+        keyframe, whose 60 m wide density maps still overlap by three quarters (simulated drive: the same
+        loops, half of MapClosures' time)."""
+        if self._last_seen is not None and travelled[key] - self._last_seen < self.config.map_closures_spacing:
+            return []
+        self._last_seen = travelled[key]
         found = []
         # Cropping the submap for the density map keeps the revisits it finds here at a ninth of the time.
         near = points[np.linalg.norm(points[:, :2], axis=1) <= self.config.map_closures_radius]

@@ -33,6 +33,10 @@ class LoopDetectionConfig(StrictModel):
     map_closures_radius: float = Field(
         30.0, gt=0.0, description="submap points within this range [m] form its density map"
     )
+    map_closures_spacing: float = Field(
+        15.0, ge=0.0, description="MapClosures sees a keyframe only this far [m] along the path from the last one it "
+        "saw (its density maps span 2 x map_closures_radius)"
+    )
 
 
 class LoopRegistrationConfig(StrictModel):

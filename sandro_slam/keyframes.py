@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from kiss_icp.mapping import VoxelHashMap
 from kiss_icp.voxelization import voxel_down_sample
 
 from sandro_slam.config import KeyframeConfig
@@ -37,16 +36,17 @@ class KeyframeBuilder:
     """Starts a keyframe every `distance` metres or `angle_deg` degrees of odometry and accumulates the
     scans that follow it, until the next keyframe, into its submap.
 
-    Each scan is moved into the keyframe frame and added to a voxel hash map that keeps the first point of
-    every voxel: the same submap as downsampling all the scans at the end, at half the time (that one pass over
-    ~150k points cost more than the ten scans). Scans come voxelised already (`OfflineSlam` passes the scan
-    KISS-ICP voxelised for its own map), which keeps the points to move few.
+    Each scan is moved into the keyframe frame; when the keyframe closes, one voxelisation of them all keeps
+    the first point of every voxel. Scans come voxelised already (`OfflineSlam` passes the scan KISS-ICP
+    voxelised for its own map), which keeps the points to move few: a voxel hash map filled scan by scan made
+    the same submap at 1.5x the time.
     """
 
     def __init__(self, config: KeyframeConfig):
         self.config = config
         self._current: Keyframe | None = None
-        self._submap = VoxelHashMap(config.submap_voxel, np.inf, 1)
+        self._T_keyframe_world = np.eye(4)  # inverse of the current keyframe's pose
+        self._scans: list[np.ndarray] = []  # the current keyframe's scans, in its frame
         self._last_position: np.ndarray | None = None
         self._travelled = 0.0
         self._next_key = 0
@@ -70,9 +70,10 @@ class KeyframeBuilder:
         if self._current is None or self._is_new_keyframe(T_world_scan):
             completed = self.flush()
             self._current = Keyframe(self._next_key, T_world_scan.copy(), frame_index, self._travelled)
+            self._T_keyframe_world = np.linalg.inv(T_world_scan)
             self._next_key += 1
-        T_keyframe_scan = np.linalg.inv(self._current.T_world_keyframe) @ T_world_scan
-        self._submap.add_points(points @ T_keyframe_scan[:3, :3].T + T_keyframe_scan[:3, 3])
+        T_keyframe_scan = self._T_keyframe_world @ T_world_scan
+        self._scans.append(points @ T_keyframe_scan[:3, :3].T + T_keyframe_scan[:3, 3])
         return completed
 
     def flush(self) -> Keyframe | None:
@@ -80,10 +81,10 @@ class KeyframeBuilder:
         keyframe = self._current
         if keyframe is None:
             return None
-        points = self._submap.point_cloud()
+        points = voxel_downsample(np.concatenate(self._scans), self.config.submap_voxel)
         keyframe.points = points[np.linalg.norm(points, axis=1) <= self.config.submap_radius]
         self._current = None
-        self._submap.clear()
+        self._scans = []
         return keyframe
 
     def current_key(self) -> int | None:
@@ -91,7 +92,7 @@ class KeyframeBuilder:
         return None if self._current is None else self._current.key
 
     def _is_new_keyframe(self, T_world_scan: np.ndarray) -> bool:
-        T_keyframe_scan = np.linalg.inv(self._current.T_world_keyframe) @ T_world_scan
+        T_keyframe_scan = self._T_keyframe_world @ T_world_scan
         moved = self._travelled - self._current.travelled
         turned = np.degrees(rotation_angle(T_keyframe_scan[:3, :3]))
         return moved >= self.config.distance or turned >= self.config.angle_deg
