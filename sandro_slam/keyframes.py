@@ -36,10 +36,10 @@ class KeyframeBuilder:
     """Starts a keyframe every `distance` metres or `angle_deg` degrees of odometry and accumulates the
     scans that follow it, until the next keyframe, into its submap.
 
-    Each scan is moved into the keyframe frame; when the keyframe closes, one voxelisation of them all keeps
-    the first point of every voxel. Scans come voxelised already (`OfflineSlam` passes the scan KISS-ICP
-    voxelised for its own map), which keeps the points to move few: a voxel hash map filled scan by scan made
-    the same submap at 1.5x the time.
+    Each scan is moved into the keyframe frame and cropped to `submap_radius`; when the keyframe closes, one
+    voxelisation of them all keeps the first point of every voxel. Scans come voxelised already (`OfflineSlam`
+    passes the scan KISS-ICP voxelised for its own map), which keeps the points to move few: a voxel hash map
+    filled scan by scan made the same submap at 1.5x the time.
     """
 
     def __init__(self, config: KeyframeConfig):
@@ -73,7 +73,8 @@ class KeyframeBuilder:
             self._T_keyframe_world = np.linalg.inv(T_world_scan)
             self._next_key += 1
         T_keyframe_scan = self._T_keyframe_world @ T_world_scan
-        self._scans.append(points @ T_keyframe_scan[:3, :3].T + T_keyframe_scan[:3, 3])
+        moved = points @ T_keyframe_scan[:3, :3].T + T_keyframe_scan[:3, 3]
+        self._scans.append(moved[np.einsum("ij,ij->i", moved, moved) <= self.config.submap_radius**2])
         return completed
 
     def flush(self) -> Keyframe | None:
@@ -81,8 +82,7 @@ class KeyframeBuilder:
         keyframe = self._current
         if keyframe is None:
             return None
-        points = voxel_downsample(np.concatenate(self._scans), self.config.submap_voxel)
-        keyframe.points = points[np.linalg.norm(points, axis=1) <= self.config.submap_radius]
+        keyframe.points = voxel_downsample(np.concatenate(self._scans), self.config.submap_voxel)
         self._current = None
         self._scans = []
         return keyframe
