@@ -46,7 +46,8 @@ class PruningConfig(StrictModel):
     max_clique_seeds: int = Field(128, ge=1, description="highest-degree seeds whose cliques are searched")
     batch_size: int = Field(8, ge=1, description="seeds tried per batch, best first")
     miss_probability: float = Field(
-        1e-2, gt=0.0, lt=1.0, description="stop trying seeds once a structure as common as the best is this unlikely to be missed"
+        1e-2, gt=0.0, lt=1.0,
+        description="stop trying seeds once a structure as common as the best is this unlikely to be missed",
     )
     max_set_size: int = Field(64, ge=8, description="cap on one seed's consistent set (subsampled above it)")
     threads_above: int = Field(

@@ -39,7 +39,7 @@ class KeyframeBuilder:
     Each scan is moved into the keyframe frame and cropped to `submap_radius`; when the keyframe closes, one
     voxelisation of them all keeps the first point of every voxel. Scans come voxelised already (`OfflineSlam`
     passes the scan KISS-ICP voxelised for its own map), which keeps the points to move few: a voxel hash map
-    filled scan by scan made the same submap at 1.5x the time.
+    filled scan by scan made the same submap (but at its 30 m edge) at 1.5x the time.
     """
 
     def __init__(self, config: KeyframeConfig):
