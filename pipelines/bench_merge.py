@@ -73,7 +73,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 class _Sessions:
-    """Simulated SLAM sessions, each computed once: (session moved to a random frame, true poses, T_frame_gt)."""
+    """Simulated SLAM sessions, each computed once: (session moved to a random frame, true poses, T_given_true: that
+    frame from the true world)."""
 
     def __init__(self, config: SlamConfig):
         self.config = config
@@ -89,9 +90,10 @@ class _Sessions:
             result = OfflineSlam(self.config).run((f.timestamp, f.points, f.times) for f in sequence.frames())
             self.slam_seconds += time.perf_counter() - tic
             truth = sequence.poses_at(result.timestamps)
-            T_frame_world = _random_transform(np.random.default_rng([seed, ord(name[0]), frames]))
-            session = Session.from_result(result, name).moved(T_frame_world)
-            self._cache[key] = (session, truth, T_frame_world @ np.linalg.inv(truth[0]))
+            # The session is handed over in a frame of its own: T_given_slam maps its SLAM world (its first scan) there.
+            T_given_slam = _random_transform(np.random.default_rng([seed, ord(name[0]), frames]))
+            session = Session.from_result(result, name).moved(T_given_slam)
+            self._cache[key] = (session, truth, T_given_slam @ np.linalg.inv(truth[0]))
         return self._cache[key]
 
 
@@ -155,17 +157,17 @@ def _accuracy(sessions, result) -> dict:
                             for poses, truth in zip(own[1:], truths[1:])]
     merged_ate = _joint_ate([result.frame_poses[s.name] for s, _, _ in sessions], truths)
     perfect_ate = _joint_ate([T @ poses for T, poses in zip(placed, own)], truths)
-    for index, (session, truth, T_frame_world) in enumerate(sessions):
+    for index, (session, truth, T_given_true) in enumerate(sessions):
         name = session.name
         out[f"ate_single_{name}"] = ate(own[index], truth)
         out[f"ate_merged_{name}"] = merged_ate[index]
         out[f"ate_ratio_{name}"] = merged_ate[index] / out[f"ate_single_{name}"]
         out[f"perfect_ate_merged_{name}"] = perfect_ate[index]
         out[f"perfect_ate_ratio_{name}"] = perfect_ate[index] / out[f"ate_single_{name}"]
-        _put(out, "first_pose_error", name, pose_errors(fits[index], np.linalg.inv(T_frame_world)))
+        _put(out, "first_pose_error", name, pose_errors(fits[index], np.linalg.inv(T_given_true)))
         if index == 0:
             continue
-        T_true = T_first @ np.linalg.inv(T_frame_world)
+        T_true = T_first @ np.linalg.inv(T_given_true)
         _put(out, "transform_error", name, pose_errors(result.T_merged_session[name], T_true))
         _put(out, "perfect_transform_error", name, pose_errors(placed[index], T_true))
         _put(out, "map_transform_error", name, pose_errors(align_se3(own[index], result.frame_poses[name]),
