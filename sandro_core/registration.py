@@ -125,7 +125,8 @@ def consensus_candidates(
     seeds = correspondence_order(src, dst, config.seed)[: min(n, p.max_seeds)]
     thr = p.pair_threshold * noise_bound
     threaded = len(seeds) * n >= p.threads_above
-    degrees = (K.consistency_degrees_parallel if threaded else K.consistency_degrees_serial)(srcT, dstT, seeds, thr)
+    degrees = (K.consistency_degrees_parallel if threaded else K.consistency_degrees_serial)(
+        centred_single(srcT), centred_single(dstT), seeds, np.float32(thr))
     clique_hypotheses = K.clique_hypotheses_parallel if threaded else K.clique_hypotheses_serial
     ranked = seeds[np.argsort(-degrees, kind="stable")][: p.max_clique_seeds]
 
@@ -156,6 +157,12 @@ def consensus_candidates(
         explained |= K.squared_residuals(src, dst, all_idx, Rs[h], ts[h]) <= noise_bound**2
     best = int(np.argmax(scores))
     return np.flatnonzero(explained), [(Rs[best], ts[best])]
+
+
+def centred_single(pointsT: np.ndarray) -> np.ndarray:
+    """(3, N) points moved to their centroid, in float32: lengths between them keep ~1e-7 of the scene's
+    extent wherever it lies (map coordinates 1e5 m from the origin would leave metres-size gaps ~1e-2 m)."""
+    return (pointsT - pointsT.mean(axis=1, keepdims=True)).astype(np.float32)
 
 
 def _validated(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

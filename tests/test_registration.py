@@ -9,6 +9,8 @@ import pytest
 from pipelines.io_pointclouds import load_point_cloud
 from pipelines.synthetic import make_problem, random_transform, transform_points
 from sandro_core import SandroConfig, register
+from sandro_core import _kernels as K
+from sandro_core.registration import centred_single
 from sandro_core.covariance import registration_information
 from sandro_core.features import match_fpfh
 
@@ -143,3 +145,20 @@ def test_known_answer_on_the_real_small_gicp_pair():
         assert rotation_error_deg(result.transformation, T_true) < 2.0
         assert np.linalg.norm(result.transformation[:3, 3] - T_true[:3, 3]) < 0.3
 
+
+
+@pytest.mark.parametrize("offset", [0.0, 5e5])  # a street around the origin, or in map (UTM-like) coordinates
+def test_consistency_degrees_in_single_precision_match_double(offset):
+    # The consensus stage ranks its seeds on centred float32 copies of the points: that must not change the
+    # degrees it would get in float64 (uncentred, 5e5 m from the origin, some differ by up to 25).
+    rng = np.random.default_rng(1)
+    n = 2000
+    src = rng.uniform(-100.0, 100.0, (n, 3)) + offset
+    dst = src + rng.normal(0.0, 0.2, (n, 3)) + 50.0
+    dst[: n // 2] = rng.uniform(-100.0, 150.0, (n // 2, 3)) + offset
+    srcT, dstT = np.ascontiguousarray(src.T), np.ascontiguousarray(dst.T)
+    seeds = rng.permutation(n)[:500]
+    double = K.consistency_degrees_serial(srcT, dstT, seeds, 0.5)
+    single = K.consistency_degrees_serial(centred_single(srcT), centred_single(dstT), seeds, np.float32(0.5))
+    assert double.mean() > 100  # the inliers' degrees are counted, not only outliers' zeros
+    assert np.array_equal(single, double)
