@@ -45,7 +45,6 @@ class KeyframeBuilder:
     def __init__(self, config: KeyframeConfig):
         self.config = config
         self._current: Keyframe | None = None
-        self._T_keyframe_world = np.eye(4)  # inverse of the current keyframe's pose
         self._scans: list[np.ndarray] = []  # the current keyframe's scans, in its frame
         self._last_position: np.ndarray | None = None
         self._travelled = 0.0
@@ -70,9 +69,8 @@ class KeyframeBuilder:
         if self._current is None or self._is_new_keyframe(T_world_scan):
             completed = self.flush()
             self._current = Keyframe(self._next_key, T_world_scan.copy(), frame_index, self._travelled)
-            self._T_keyframe_world = np.linalg.inv(T_world_scan)
             self._next_key += 1
-        T_keyframe_scan = self._T_keyframe_world @ T_world_scan
+        T_keyframe_scan = np.linalg.inv(self._current.T_world_keyframe) @ T_world_scan
         moved = points @ T_keyframe_scan[:3, :3].T + T_keyframe_scan[:3, 3]
         self._scans.append(moved[np.einsum("ij,ij->i", moved, moved) <= self.config.submap_radius**2])
         return completed
@@ -92,7 +90,7 @@ class KeyframeBuilder:
         return None if self._current is None else self._current.key
 
     def _is_new_keyframe(self, T_world_scan: np.ndarray) -> bool:
-        T_keyframe_scan = self._T_keyframe_world @ T_world_scan
+        T_keyframe_scan = np.linalg.inv(self._current.T_world_keyframe) @ T_world_scan
         moved = self._travelled - self._current.travelled
         turned = np.degrees(rotation_angle(T_keyframe_scan[:3, :3]))
         return moved >= self.config.distance or turned >= self.config.angle_deg

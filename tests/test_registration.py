@@ -10,9 +10,9 @@ from pipelines.io_pointclouds import load_point_cloud
 from pipelines.synthetic import make_problem, random_transform, transform_points
 from sandro_core import SandroConfig, register
 from sandro_core import _kernels as K
-from sandro_core.registration import centred_single
 from sandro_core.covariance import registration_information
 from sandro_core.features import match_fpfh
+from sandro_core.registration import centred_single
 
 
 def rotation_error_deg(T: np.ndarray, T_true: np.ndarray) -> float:
@@ -144,7 +144,6 @@ def test_known_answer_on_the_real_small_gicp_pair():
         assert result.valid
         assert rotation_error_deg(result.transformation, T_true) < 2.0
         assert np.linalg.norm(result.transformation[:3, 3] - T_true[:3, 3]) < 0.3
-
 
 
 @pytest.mark.parametrize("offset", [0.0, 5e5])  # a street around the origin, or in map (UTM-like) coordinates
