@@ -22,7 +22,7 @@ class KeyframeConfig(StrictModel):
 
 
 class LoopDetectionConfig(StrictModel):
-    """Which keyframe pairs are tried as loop closures."""
+    """Which keyframe pairs are tried as loop closures, and where that work runs."""
 
     radius: float = Field(25.0, gt=0.0, description="candidates within this distance [m] of the new keyframe")
     exclude_recent: float = Field(50.0, ge=0.0, description="skip keyframes fewer than this many metres back")
@@ -36,6 +36,10 @@ class LoopDetectionConfig(StrictModel):
     map_closures_spacing: float = Field(
         15.0, ge=0.0, description="MapClosures sees a keyframe only this far [m] along the path from the last one it "
         "saw (its density maps span 2 x map_closures_radius)"
+    )
+    in_background: bool = Field(
+        True, description="OfflineSlam: loop closure in a worker process at the lowest CPU priority, on the cycles "
+        "the odometry leaves idle (the same results)"
     )
 
 

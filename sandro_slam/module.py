@@ -43,7 +43,8 @@ class LoopClosureModule:
         self.pose_graph = PoseGraph(self.config.graph)
         self.loops: list[LoopClosure] = []
         self.attempts = 0  # candidate pairs registered
-        self._descriptions: dict[int, SubmapDescription] = {}
+        self._submaps: dict[int, np.ndarray] = {}  # keyframe submaps (points in the keyframe frame) by key
+        self._descriptions: dict[int, SubmapDescription] = {}  # of the submaps, made once each
         self._travelled: dict[int, float] = {}
         self._last_key: int | None = None
         self._place_recognition = PlaceRecognition(self.config.loops) if self.config.loops.use_map_closures else None
@@ -68,7 +69,8 @@ class LoopClosureModule:
         points = np.asarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
             raise ValueError(f"keyframe {key}: points must be an (N, 3) array, got shape {points.shape}")
-        points = points[np.all(np.isfinite(points), axis=1)]
+        finite = np.all(np.isfinite(points), axis=1)
+        points = points if finite.all() else points[finite]
         previous = self._last_key
         if previous is None:
             self.pose_graph.add_pose(key, T_world_keyframe)
@@ -82,15 +84,15 @@ class LoopClosureModule:
         self._last_key = key
         if len(points) < 10:
             return []
-        self._descriptions[key] = describe_submap(points, self.config.registration)
+        self._submaps[key] = points
 
         found: dict[int, list[str]] = {}
-        positions = {k: self.pose_graph.estimate(k)[:3, 3] for k in self._descriptions}
+        positions = {k: self.pose_graph.estimate(k)[:3, 3] for k in self._submaps}
         for other in radius_candidates(key, positions, self._travelled, self.config.loops):
             found.setdefault(other, []).append("radius")
         if self._place_recognition is not None:
             for other in self._place_recognition.candidates(key, points, self._travelled):
-                if other in self._descriptions:
+                if other in self._submaps:
                     found.setdefault(other, []).append("place_recognition")
 
         closed = []
@@ -98,7 +100,7 @@ class LoopClosureModule:
             if len(closed) >= self.config.loops.max_loops_per_keyframe:
                 break
             self.attempts += 1
-            pair = register_submaps(self._descriptions[other], self._descriptions[key], self.config.registration)
+            pair = register_submaps(self._description(other), self._description(key), self.config.registration)
             if not pair.accepted:
                 continue
             factor = self.pose_graph.add_loop(other, key, pair.T_target_source, pair.covariance)
@@ -119,4 +121,14 @@ class LoopClosureModule:
     def rejected_loops(self) -> list[LoopClosure]:
         """Verified loops that the robust back end rejected in the last optimisation."""
         return [loop for loop in self.loops if loop.weight < 0.5]
+
+    def __getstate__(self) -> dict:
+        # Descriptions hold Open3D clouds, which do not pickle: `_description` makes them again from the submaps.
+        return {**self.__dict__, "_descriptions": {}}
+
+    def _description(self, key: int) -> SubmapDescription:
+        description = self._descriptions.get(key)
+        if description is None:
+            description = self._descriptions[key] = describe_submap(self._submaps[key], self.config.registration)
+        return description
 

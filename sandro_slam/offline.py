@@ -11,6 +11,7 @@ import numpy as np
 from kiss_icp.kiss_icp import KissICP
 from kiss_icp.mapping import get_voxel_hash_map
 
+from sandro_slam.background import BackgroundLoopClosure
 from sandro_slam.config import SlamConfig
 from sandro_slam.keyframes import Keyframe, KeyframeBuilder, voxel_downsample
 from sandro_slam.module import LoopClosure, LoopClosureModule
@@ -36,7 +37,9 @@ class SlamResult:
     loops: list[LoopClosure]  # verified loops; `weight` < 0.5 means the back end rejected them
     rejected_loops: list[LoopClosure]
     skipped_frames: list[int]  # input frames without any finite point
-    timings: dict[str, float] = field(default_factory=dict)  # seconds: odometry, loop_closure, optimization, total
+    timings: dict[str, float] = field(default_factory=dict)  # wall seconds: odometry, loop_closure (in this
+    # process), optimization (with `loops.in_background`: also the wait for the worker), total; and the
+    # worker's loop_closure_worker_cpu (CPU seconds) when it ran
 
     def frame_poses(self, keyframe_poses: dict[int, np.ndarray]) -> np.ndarray:
         """(F, 4, 4) T_world_sensor of every frame, each moved rigidly with its keyframe to `keyframe_poses`."""
@@ -57,14 +60,26 @@ class OfflineSlam:
         self.module = LoopClosureModule(self.config)
 
     def run(self, frames: Iterable[Frame], progress: bool = False) -> SlamResult:
-        """Process (timestamp, points[, per-point times]) frames in order; points in the sensor frame."""
+        """Process (timestamp, points[, per-point times]) frames in order; points in the sensor frame.
+
+        With `loops.in_background`, `module` works in a worker process beside the odometry
+        (`BackgroundLoopClosure`) and is replaced by what the worker returns, with the same content.
+        """
+        start = time.perf_counter()
+        if self.config.loops.in_background:
+            with BackgroundLoopClosure(self.module) as background:
+                return self._run(frames, progress, background, start)
+        return self._run(frames, progress, None, start)
+
+    def _run(self, frames: Iterable[Frame], progress: bool, background: BackgroundLoopClosure | None,
+             start: float) -> SlamResult:
         odometry = _Odometry(self.config.odometry)
         # The scan as the submaps take it: KISS-ICP's own voxelisation when that is fine enough.
         own_scan = self.config.keyframes.submap_voxel >= 0.5 * self.config.odometry.mapping.voxel_size
         builder = KeyframeBuilder(self.config.keyframes)
         stamps, odometry_poses, keys, skipped, keyframes = [], [], [], [], []
         timings = {"odometry": 0.0, "loop_closure": 0.0, "optimization": 0.0}
-        start = time.perf_counter()
+        closer = background or self.module
         iterator = frames
         if progress:
             from tqdm import tqdm
@@ -75,7 +90,8 @@ class OfflineSlam:
             tic = time.perf_counter()
             completed = builder.add_scan(len(stamps), pose, scan)
             if completed is not None:
-                self._close(completed, keyframes)
+                keyframes.append(completed)
+                closer.add_keyframe(completed.key, completed.T_world_keyframe, completed.points)
             timings["loop_closure"] += time.perf_counter() - tic
             stamps.append(stamp)
             odometry_poses.append(pose)
@@ -125,11 +141,15 @@ class OfflineSlam:
         tic = time.perf_counter()
         last = builder.flush()
         if last is not None:
-            self._close(last, keyframes)
+            keyframes.append(last)
+            closer.add_keyframe(last.key, last.T_world_keyframe, last.points)
         timings["loop_closure"] += time.perf_counter() - tic
 
         tic = time.perf_counter()
-        keyframe_poses = self.module.optimize()
+        if background is None:
+            keyframe_poses = self.module.optimize()
+        else:
+            self.module, keyframe_poses, timings["loop_closure_worker_cpu"] = background.finish()
         timings["optimization"] = time.perf_counter() - tic
         timings["total"] = time.perf_counter() - start
         result = SlamResult(
@@ -148,10 +168,6 @@ class OfflineSlam:
         )
         result.poses = result.frame_poses(keyframe_poses)
         return result
-
-    def _close(self, keyframe: Keyframe, keyframes: list[Keyframe]) -> None:
-        keyframes.append(keyframe)
-        self.module.add_keyframe(keyframe.key, keyframe.T_world_keyframe, keyframe.points)
 
 
 class _Odometry(KissICP):

@@ -301,6 +301,26 @@ class PoseGraph:
         """Loops the robust back end weighted below 0.5 in the last optimisation."""
         return [loop for loop in self.loops if loop.weight < 0.5]
 
+    def __getstate__(self) -> dict:
+        # gtsam.ISAM2 does not pickle: `__setstate__` builds it again.
+        return {**self.__dict__, "_isam": None}
+
+    def __setstate__(self, state: dict) -> None:
+        """Unpickle; in incremental mode, a new ISAM2 holds the prior, the odometry and the accepted loops, linearised
+        at the latest estimate."""
+        self.__dict__.update(state)
+        if self.config.mode != "incremental":
+            return
+        self._isam = gtsam.ISAM2()
+        if self._estimate.size() == 0:
+            return
+        factors = gtsam.NonlinearFactorGraph()
+        accepted = sorted(self._isam_slots)
+        for index in self._known_inliers + accepted:
+            factors.add(self.graph.at(index))
+        slots = list(self._isam.update(factors, self._estimate).getNewFactorsIndices())
+        self._isam_slots = dict(zip(accepted, slots[len(self._known_inliers):]))
+
     def _robust_optimize(self, initial: gtsam.Values, config: GraphConfig | None = None) -> gtsam.Values:
         if not self.loops:
             return gtsam.LevenbergMarquardtOptimizer(self.graph, initial).optimize()

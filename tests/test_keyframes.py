@@ -1,8 +1,12 @@
-"""KeyframeBuilder: where keyframes start and what their submaps hold; place recognition's spacing."""
+"""KeyframeBuilder: where keyframes start and what their submaps hold; place recognition's spacing and pickling."""
+
+import pickle
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from pipelines.simulation import simulate_sequence
+from pipelines.synthetic import transform_points
 from sandro_slam.candidates import PlaceRecognition
 from sandro_slam.config import KeyframeConfig, LoopDetectionConfig
 from sandro_slam.keyframes import KeyframeBuilder
@@ -79,3 +83,19 @@ def test_place_recognition_sees_keyframes_map_closures_spacing_apart():
     for key in range(8):
         every.candidates(key, np.zeros((10, 3)), travelled)
     assert every._closures.seen == list(range(8))
+
+
+def test_place_recognition_unpickled_finds_what_the_original_finds():
+    # MapClosures does not pickle: the unpickled one rebuilds its database from the submaps it saw.
+    sequence = simulate_sequence(seed=1, frames=10)
+    poses = sequence.poses_at(np.array([frame.timestamp for frame in sequence.frames()]))
+    submap = np.concatenate([transform_points(np.linalg.inv(poses[0]) @ pose, frame.points)
+                             for pose, frame in zip(poses, sequence.frames())])
+    other = np.random.default_rng(0).uniform([-30, -30, -2], [30, 30, 0], (20000, 3))  # another place: rough ground
+    travelled = {0: 0.0, 10: 100.0, 40: 400.0}  # MapClosures skips keys fewer than ~30 apart
+    original = PlaceRecognition(LoopDetectionConfig(map_closures_spacing=0.0))
+    original.candidates(0, submap, travelled)
+    original.candidates(10, other, travelled)
+    copy = pickle.loads(pickle.dumps(original))
+    assert original.candidates(40, submap, travelled) == [0]
+    assert copy.candidates(40, submap, travelled) == [0]

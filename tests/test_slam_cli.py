@@ -126,12 +126,12 @@ def test_ctrl_c_stops_and_still_writes_the_results(bag, tmp_path):
     out = tmp_path / "r"
     process = subprocess.Popen([sys.executable, "-m", "pipelines.slam", str(bag), "--out", str(out), "--quiet"],
                                cwd=Path(__file__).resolve().parents[1], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                               text=True)
+                               text=True, start_new_session=True)
     deadline = time.monotonic() + 60
     while not (out.is_dir() and any(out.iterdir())) and time.monotonic() < deadline:  # the run folder: processing
         time.sleep(0.05)
     time.sleep(0.5)
-    os.kill(process.pid, signal.SIGINT)
+    os.killpg(process.pid, signal.SIGINT)  # as a terminal does: to the whole process group
     stdout, stderr = process.communicate(timeout=120)
     assert process.returncode == 0, stderr
     assert "Traceback" not in stderr and "stopping after this scan" in stderr
