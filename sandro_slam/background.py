@@ -133,8 +133,16 @@ def _lowest_priority() -> None:
     try:
         for thread in os.listdir("/proc/self/task"):
             os.sched_setscheduler(int(thread), os.SCHED_IDLE, os.sched_param(0))
+        return
     except (AttributeError, OSError):
+        pass
+    if hasattr(os, "nice"):
         os.nice(19)
+
+
+def usable_cores() -> int:
+    """Cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def _pickles(error: BaseException) -> bool:

@@ -38,8 +38,8 @@ class LoopDetectionConfig(StrictModel):
         "saw (its density maps span 2 x map_closures_radius)"
     )
     in_background: bool = Field(
-        True, description="OfflineSlam: loop closure in a worker process at the lowest CPU priority, on the cycles "
-        "the odometry leaves idle (the same results)"
+        True, description="OfflineSlam, on more than one core: loop closure in a worker process at the lowest CPU "
+        "priority, on the cycles the odometry leaves idle (the same results)"
     )
 
 

@@ -11,7 +11,7 @@ import numpy as np
 from kiss_icp.kiss_icp import KissICP
 from kiss_icp.mapping import get_voxel_hash_map
 
-from sandro_slam.background import BackgroundLoopClosure
+from sandro_slam.background import BackgroundLoopClosure, usable_cores
 from sandro_slam.config import SlamConfig
 from sandro_slam.keyframes import Keyframe, KeyframeBuilder, voxel_downsample
 from sandro_slam.module import LoopClosure, LoopClosureModule
@@ -62,11 +62,11 @@ class OfflineSlam:
     def run(self, frames: Iterable[Frame], progress: bool = False) -> SlamResult:
         """Process (timestamp, points[, per-point times]) frames in order; points in the sensor frame.
 
-        With `loops.in_background`, `module` works in a worker process beside the odometry
-        (`BackgroundLoopClosure`) and is replaced by what the worker returns, with the same content.
+        With `loops.in_background` and more than one core, `module` works in a worker process beside the
+        odometry (`BackgroundLoopClosure`) and is replaced by what the worker returns, with the same content.
         """
         start = time.perf_counter()
-        if self.config.loops.in_background:
+        if self.config.loops.in_background and usable_cores() > 1:
             with BackgroundLoopClosure(self.module) as background:
                 return self._run(frames, progress, background, start)
         return self._run(frames, progress, None, start)

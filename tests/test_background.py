@@ -82,7 +82,7 @@ def test_a_worker_that_dies_is_reported():
             background.finish()
 
 
-def test_offline_slam_takes_the_module_back_from_its_worker():
+def test_offline_slam_takes_the_module_back_from_its_worker(monkeypatch):
     sequence = simulate_sequence(seed=1, frames=25)
     frames = [(f.timestamp, f.points, f.times) for f in sequence.frames()]
     slam = OfflineSlam(SlamConfig())
@@ -96,3 +96,8 @@ def test_offline_slam_takes_the_module_back_from_its_worker():
     inline = OfflineSlam(config).run(frames)
     assert "loop_closure_worker_cpu" not in inline.timings
     assert len(inline.keyframes) == len(result.keyframes)
+
+    import sandro_slam.offline
+
+    monkeypatch.setattr(sandro_slam.offline, "usable_cores", lambda: 1)  # one core: no idle cycles to use
+    assert "loop_closure_worker_cpu" not in OfflineSlam(SlamConfig()).run(frames).timings
