@@ -92,7 +92,7 @@ def test_place_recognition_unpickled_finds_what_the_original_finds():
     submap = np.concatenate([transform_points(np.linalg.inv(poses[0]) @ pose, frame.points)
                              for pose, frame in zip(poses, sequence.frames())])
     other = np.random.default_rng(0).uniform([-30, -30, -2], [30, 30, 0], (20000, 3))  # another place: rough ground
-    travelled = {0: 0.0, 10: 100.0, 40: 400.0}  # MapClosures skips keys fewer than ~30 apart
+    travelled = {0: 0.0, 10: 100.0, 40: 400.0}  # MapClosures matches only keys at least 4 apart
     original = PlaceRecognition(LoopDetectionConfig(map_closures_spacing=0.0))
     original.candidates(0, submap, travelled)
     original.candidates(10, other, travelled)
