@@ -37,7 +37,8 @@ class BackgroundLoopClosure:
 
     def __init__(self, module: LoopClosureModule):
         # Its own session: a Ctrl-C at the terminal reaches only the caller, who decides what stops.
-        self._process = subprocess.Popen(_WORKER, stdin=subprocess.PIPE, stdout=subprocess.PIPE, start_new_session=True)
+        self._process = subprocess.Popen(_WORKER, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                         env=worker_environment(), start_new_session=True)
         self._outbox: queue.SimpleQueue = queue.SimpleQueue()
         self._send_error: OSError | None = None
         self._sender = threading.Thread(target=self._send, name="loop-closure sender", daemon=True)
@@ -138,6 +139,12 @@ def _lowest_priority() -> None:
         pass
     if hasattr(os, "nice"):
         os.nice(19)
+
+
+def worker_environment() -> dict[str, str]:
+    """This process's environment, with PYTHONPATH set to its import path: the worker imports sandro_slam from
+    where the caller did, also when the caller added that place to sys.path at run time."""
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(path for path in sys.path if path)}
 
 
 def usable_cores() -> int:

@@ -1,5 +1,6 @@
 """sandro_slam.background: loop closure in a worker process, and the module's pickling that carries it."""
 
+import os
 import pickle
 
 import numpy as np
@@ -101,3 +102,10 @@ def test_offline_slam_takes_the_module_back_from_its_worker(monkeypatch):
 
     monkeypatch.setattr(sandro_slam.offline, "usable_cores", lambda: 1)  # one core: no idle cycles to use
     assert "loop_closure_worker_cpu" not in OfflineSlam(SlamConfig()).run(frames).timings
+
+
+def test_the_worker_imports_from_where_the_caller_does(tmp_path, monkeypatch):
+    from sandro_slam.background import worker_environment
+
+    monkeypatch.syspath_prepend(str(tmp_path))  # as a script that adds a checkout to sys.path
+    assert str(tmp_path) in worker_environment()["PYTHONPATH"].split(os.pathsep)
