@@ -86,12 +86,15 @@ class OfflineSlam:
 
             iterator = tqdm(frames, unit="frame", desc="sandro-slam")
 
+        def close(keyframe: Keyframe) -> None:
+            keyframes.append(keyframe)
+            closer.add_keyframe(keyframe.key, keyframe.T_world_keyframe, keyframe.points)
+
         def add(stamp: float, pose: np.ndarray, scan: np.ndarray) -> None:
             tic = time.perf_counter()
             completed = builder.add_scan(len(stamps), pose, scan)
             if completed is not None:
-                keyframes.append(completed)
-                closer.add_keyframe(completed.key, completed.T_world_keyframe, completed.points)
+                close(completed)
             timings["loop_closure"] += time.perf_counter() - tic
             stamps.append(stamp)
             odometry_poses.append(pose)
@@ -141,8 +144,7 @@ class OfflineSlam:
         tic = time.perf_counter()
         last = builder.flush()
         if last is not None:
-            keyframes.append(last)
-            closer.add_keyframe(last.key, last.T_world_keyframe, last.points)
+            close(last)
         timings["loop_closure"] += time.perf_counter() - tic
 
         tic = time.perf_counter()
