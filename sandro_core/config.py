@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 SplitStrategy = Literal["contiguous", "random", "spatial"]
 
@@ -21,10 +21,29 @@ class YamlConfig(StrictModel):
     """A top-level configuration that loads from and dumps to YAML."""
 
     @classmethod
-    def from_yaml(cls, path: str | Path) -> "YamlConfig":
-        """Load from a YAML file; unknown keys are an error."""
+    def from_yaml(cls, path: str | Path) -> YamlConfig:
+        """Load from a YAML file; unknown keys are an error (pydantic.ValidationError)."""
         data = yaml.safe_load(Path(path).read_text()) or {}
         return cls.model_validate(data)
+
+    @classmethod
+    def load(cls, path: str | Path | None) -> YamlConfig:
+        """`from_yaml(path)`, or the defaults for None; any problem is a ValueError of one line naming the file
+        (what a command line reports)."""
+        if path is None:
+            return cls()
+        path = Path(path)
+        if not path.is_file():
+            raise ValueError(f"no such config file: {path}")
+        try:
+            return cls.from_yaml(path)
+        except yaml.YAMLError as error:
+            raise ValueError(f"{path}: not valid YAML ({str(error).splitlines()[0]})") from None
+        except ValidationError as error:
+            first = error.errors()[0]
+            where = ".".join(str(part) for part in first["loc"]) or "top level"
+            more = f" (and {error.error_count() - 1} more)" if error.error_count() > 1 else ""
+            raise ValueError(f"{path}: {where}: {first['msg']}{more}") from None
 
     def to_yaml(self, path: str | Path) -> None:
         Path(path).write_text(yaml.safe_dump(self.model_dump(), sort_keys=False))
@@ -46,7 +65,9 @@ class PruningConfig(StrictModel):
     max_clique_seeds: int = Field(128, ge=1, description="highest-degree seeds whose cliques are searched")
     batch_size: int = Field(8, ge=1, description="seeds tried per batch, best first")
     miss_probability: float = Field(
-        1e-2, gt=0.0, lt=1.0,
+        1e-2,
+        gt=0.0,
+        lt=1.0,
         description="stop trying seeds once a structure as common as the best is this unlikely to be missed",
     )
     max_set_size: int = Field(64, ge=8, description="cap on one seed's consistent set (subsampled above it)")
@@ -86,7 +107,7 @@ class SandroConfig(YamlConfig):
     seed: int = 0
 
     @classmethod
-    def paper(cls) -> "SandroConfig":
+    def paper(cls) -> SandroConfig:
         """Algorithm 1 of the paper, literally: fixed alpha0 decaying without floor, absolute epsilon,
         4 contiguous equal splits, the split with the lowest own loss wins, no pruning, no refinement."""
         return cls(

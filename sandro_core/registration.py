@@ -43,8 +43,17 @@ def register(source: np.ndarray, target: np.ndarray, config: SandroConfig | None
     Rs, ts, own_losses, iterations = [], [], [], []
     for idx in splits:
         R, t, gamma, its, _ = K.gnc_irls(
-            src, dst, idx, np.eye(3), np.zeros(3), config.alpha0 or 0.0, alpha_min,
-            config.beta, config.epsilon, config.relative_epsilon, config.max_iterations,
+            src,
+            dst,
+            idx,
+            np.eye(3),
+            np.zeros(3),
+            config.alpha0 or 0.0,
+            alpha_min,
+            config.beta,
+            config.epsilon,
+            config.relative_epsilon,
+            config.max_iterations,
         )
         Rs.append(R)
         ts.append(t)
@@ -68,7 +77,16 @@ def register(source: np.ndarray, target: np.ndarray, config: SandroConfig | None
     all_idx = np.arange(n)
     if config.refine:
         R_ref, t_ref, _, refine_its, ok = K.gnc_irls(
-            src, dst, all_idx, R, t, alpha_score, alpha_score, config.beta, config.epsilon, True,
+            src,
+            dst,
+            all_idx,
+            R,
+            t,
+            alpha_score,
+            alpha_score,
+            config.beta,
+            config.epsilon,
+            True,
             config.max_iterations,
         )
         if ok:
@@ -126,7 +144,8 @@ def consensus_candidates(
     thr = p.pair_threshold * noise_bound
     threaded = len(seeds) * n >= p.threads_above
     degrees = (K.consistency_degrees_parallel if threaded else K.consistency_degrees_serial)(
-        centred_single(srcT), centred_single(dstT), seeds, np.float32(thr))
+        centred_single(srcT), centred_single(dstT), seeds, np.float32(thr)
+    )
     clique_hypotheses = K.clique_hypotheses_parallel if threaded else K.clique_hypotheses_serial
     ranked = seeds[np.argsort(-degrees, kind="stable")][: p.max_clique_seeds]
 
@@ -136,8 +155,9 @@ def consensus_candidates(
     Rs, ts, scores = [], [], []
     bound2 = noise_bound**2
     for start in range(0, len(ranked), p.batch_size):
-        R_b, t_b, s_b = clique_hypotheses(src, dst, srcT, dstT, ranked[start : start + p.batch_size],
-                                          thr, p.max_set_size, noise_bound)
+        R_b, t_b, s_b = clique_hypotheses(
+            src, dst, srcT, dstT, ranked[start : start + p.batch_size], thr, p.max_set_size, noise_bound
+        )
         Rs.append(R_b)
         ts.append(t_b)
         scores.append(s_b)

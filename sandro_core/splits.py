@@ -7,6 +7,7 @@ from numba import njit
 
 from sandro_core.config import SplitStrategy
 
+
 @njit(cache=True)
 def _splitmix64(x):
     x = x + np.uint64(0x9E3779B97F4A7C15)

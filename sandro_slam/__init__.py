@@ -1,10 +1,20 @@
 """sandro_slam: loop closures between KISS-ICP keyframe submaps in a gtsam pose graph."""
 
 from sandro_slam.config import SlamConfig
-from sandro_slam.module import LoopClosure, LoopClosureModule
 from sandro_slam.merge import MergeResult, merge_sessions
+from sandro_slam.module import LoopClosure, LoopClosureModule
 from sandro_slam.offline import OfflineSlam, SlamResult
+from sandro_slam.scan import Scan
 from sandro_slam.session import Session
 
-__all__ = ["LoopClosure", "LoopClosureModule", "MergeResult", "OfflineSlam", "Session", "SlamConfig", "SlamResult",
-           "merge_sessions"]
+__all__ = [
+    "LoopClosure",
+    "LoopClosureModule",
+    "MergeResult",
+    "OfflineSlam",
+    "Scan",
+    "Session",
+    "SlamConfig",
+    "SlamResult",
+    "merge_sessions",
+]

@@ -2,8 +2,8 @@
 
 Python runs one thread at a time, and KISS-ICP, Open3D and MapClosures hold that lock while they work: loop
 closure in a thread adds its whole time to the odometry's. A process does not share the lock. At the lowest
-priority (Linux SCHED_IDLE) it runs only on the cycles the odometry leaves idle between and within its frames:
-a busy process there took 37 % of one of two cores and slowed KISS-ICP by 4 %.
+priority (Linux SCHED_IDLE) it runs only on the cycles the odometry leaves idle between and within its frames
+(docs/back-end.md has the measurements).
 
 The worker runs the module's own code on the same keyframes in the same order, so what `finish` returns is what
 the module would hold after the same `add_keyframe` and `optimize` calls in this process.
@@ -37,8 +37,9 @@ class BackgroundLoopClosure:
 
     def __init__(self, module: LoopClosureModule):
         # Its own session: a Ctrl-C at the terminal reaches only the caller, who decides what stops.
-        self._process = subprocess.Popen(_WORKER, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                         env=worker_environment(), start_new_session=True)
+        self._process = subprocess.Popen(
+            _WORKER, stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=worker_environment(), start_new_session=True
+        )
         self._outbox: queue.SimpleQueue = queue.SimpleQueue()
         self._send_error: OSError | None = None
         self._sender = threading.Thread(target=self._send, name="loop-closure sender", daemon=True)
@@ -79,7 +80,7 @@ class BackgroundLoopClosure:
             except OSError:  # the sender may be writing into the pipe of the worker just killed
                 pass
 
-    def __enter__(self) -> "BackgroundLoopClosure":
+    def __enter__(self) -> BackgroundLoopClosure:
         return self
 
     def __exit__(self, *exc_info) -> None:

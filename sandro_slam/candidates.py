@@ -43,8 +43,7 @@ class PlaceRecognition:
         """Add keyframe `key`'s submap (keyframe frame) and return earlier keyframes that look like it,
         best first, skipping the last `exclude_recent` metres. A keyframe less than `map_closures_spacing` metres
         along the path from the last one added is neither added nor matched: at the defaults every other
-        keyframe, whose 60 m wide density maps still overlap by three quarters (simulated drive: the same
-        loops, half of MapClosures' time)."""
+        keyframe, whose 60 m wide density maps still overlap by three quarters."""
         if self._last_seen is not None and travelled[key] - self._last_seen < self.config.map_closures_spacing:
             return []
         self._last_seen = travelled[key]

@@ -15,8 +15,7 @@ class KeyframeConfig(StrictModel):
 
     distance: float = Field(10.0, gt=0.0, description="travel [m] that starts a new keyframe")
     angle_deg: float = Field(30.0, gt=0.0, description="rotation [deg] that starts a new keyframe")
-    # 0.5 m: as fine as registration uses (ICP source 0.5 m, FPFH 1 m); against 0.25 m, loop closure time
-    # 8.9 -> 6.0 s on the simulated drive at the same ATE (0.180 / 0.181 m).
+    # 0.5 m: as fine as registration uses (the ICP source is voxelised at 0.5 m, FPFH keypoints are coarser).
     submap_voxel: float = Field(0.5, gt=0.0, description="voxel size [m] of the stored submap")
     submap_radius: float = Field(30.0, gt=0.0, description="submap points farther than this [m] are dropped")
 
@@ -34,12 +33,15 @@ class LoopDetectionConfig(StrictModel):
         30.0, gt=0.0, description="submap points within this range [m] form its density map"
     )
     map_closures_spacing: float = Field(
-        15.0, ge=0.0, description="MapClosures sees a keyframe only this far [m] along the path from the last one it "
-        "saw (its density maps span 2 x map_closures_radius)"
+        15.0,
+        ge=0.0,
+        description="MapClosures sees a keyframe only this far [m] along the path from the last one it "
+        "saw (its density maps span 2 x map_closures_radius)",
     )
     in_background: bool = Field(
-        True, description="OfflineSlam, on more than one core: loop closure in a worker process at the lowest CPU "
-        "priority, on the cycles the odometry leaves idle (the same results)"
+        True,
+        description="OfflineSlam, on more than one core: loop closure in a worker process at the lowest CPU "
+        "priority, on the cycles the odometry leaves idle (the same results)",
     )
 
 
@@ -47,9 +49,7 @@ class LoopRegistrationConfig(StrictModel):
     """Registration and verification of one candidate pair of submaps."""
 
     fpfh_voxel: float = Field(1.25, gt=0.0, description="voxel [m] of the FPFH keypoints")
-    fpfh_max_nn: int = Field(
-        50, ge=1, description="neighbours per FPFH descriptor (100: twice the time, the same loops in simulation)"
-    )
+    fpfh_max_nn: int = Field(50, ge=1, description="neighbours per FPFH descriptor (its cost grows linearly with it)")
     sandro: SandroConfig = Field(default_factory=lambda: SandroConfig(noise_bound=1.0))
     icp_refine: bool = Field(True, description="point-to-plane ICP from the SANDRO transform")
     icp_max_distance: float = Field(1.0, gt=0.0, description="ICP correspondence distance [m]")
@@ -71,9 +71,10 @@ class GraphConfig(StrictModel):
         0.99, gt=0.0, lt=1.0, description="chi-square probability of a loop's whitened error being an inlier"
     )
     noise_scale: Literal["given", "estimated"] = Field(
-        "estimated", description="loops' covariances as given, or also a second robust pass rescaled by the "
+        "estimated",
+        description="loops' covariances as given, or also a second robust pass rescaled by the "
         "variance factor of the loops the first keeps, taken when it keeps most of them and fits them clearly "
-        "better (for covariances not to scale)"
+        "better (for covariances not to scale)",
     )
     prior_sigma: float = Field(1e-3, gt=0.0, description="std of the first pose, rad and m")
     odometry_translation_sigma_per_m: float = Field(0.01, gt=0.0, description="[m] per m travelled")
@@ -100,9 +101,11 @@ class MergeConfig(StrictModel):
         10.0, ge=0.0, description="once aligned, register keyframe pairs this close [m] (0: no guided search)"
     )
     max_free_space_conflict: float = Field(
-        0.03, ge=0.0, le=1.0,
+        0.03,
+        ge=0.0,
+        le=1.0,
         description="refuse a voted alignment whose agreeing loops put a median share above this of the submap "
-        "keypoints where the other session saw free space (aliasing; true overlaps about 0.003, aliased 0.09)",
+        "keypoints where the other session saw free space (an aliased place; docs/merge.md)",
     )
     free_space_voxel: float = Field(0.5, gt=0.0, description="voxel [m] of the free-space test")
     conflict_loops: int = Field(12, ge=1, description="agreeing loops (most inliers first) the free-space test checks")
@@ -120,7 +123,7 @@ class SlamConfig(YamlConfig):
     merge: MergeConfig = Field(default_factory=MergeConfig)
 
     @model_validator(mode="after")
-    def _odometry_voxel(self) -> "SlamConfig":
+    def _odometry_voxel(self) -> SlamConfig:
         # KISS-ICP's own default: a voxel of max_range / 100 (KISSConfig() alone leaves it None).
         if self.odometry.mapping.voxel_size is None:
             self.odometry.mapping.voxel_size = self.odometry.data.max_range / 100.0

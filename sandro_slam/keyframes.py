@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from kiss_icp.voxelization import voxel_down_sample
 
+from sandro_core.geometry import rotation_angle, transform_points
 from sandro_slam.config import KeyframeConfig
 
 
@@ -21,11 +22,6 @@ class Keyframe:
     points: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
 
 
-def rotation_angle(R: np.ndarray) -> float:
-    """Angle [rad] of a 3x3 rotation matrix."""
-    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
-
-
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     """One point per occupied voxel of edge `voxel` [m] (KISS-ICP's voxelisation: several times faster
     than open3d's on scans)."""
@@ -37,9 +33,8 @@ class KeyframeBuilder:
     scans that follow it, until the next keyframe, into its submap.
 
     Each scan is moved into the keyframe frame and cropped to `submap_radius`; when the keyframe closes, one
-    voxelisation of them all keeps the first point of every voxel. Scans come voxelised already (`OfflineSlam`
-    passes the scan KISS-ICP voxelised for its own map), which keeps the points to move few: a voxel hash map
-    filled scan by scan made the same submap (but at its 30 m edge) at 1.5x the time.
+    voxelisation of them all keeps the first point of every voxel. Scans come voxelised already (`Frontend`
+    passes the scan KISS-ICP voxelised for its own map), which keeps the points to move few.
     """
 
     def __init__(self, config: KeyframeConfig):
@@ -71,7 +66,7 @@ class KeyframeBuilder:
             self._current = Keyframe(self._next_key, T_world_scan.copy(), frame_index, self._travelled)
             self._next_key += 1
         T_keyframe_scan = np.linalg.inv(self._current.T_world_keyframe) @ T_world_scan
-        moved = points @ T_keyframe_scan[:3, :3].T + T_keyframe_scan[:3, 3]
+        moved = transform_points(T_keyframe_scan, points)
         self._scans.append(moved[np.einsum("ij,ij->i", moved, moved) <= self.config.submap_radius**2])
         return completed
 

@@ -9,8 +9,9 @@ import numpy as np
 
 from sandro_slam.candidates import PlaceRecognition, radius_candidates
 from sandro_slam.config import SlamConfig
+from sandro_slam.factors import odometry_covariance
 from sandro_slam.loop_registration import SubmapDescription, describe_submap, register_submaps
-from sandro_slam.pose_graph import LoopFactor, PoseGraph, odometry_covariance
+from sandro_slam.pose_graph import LoopFactor, PoseGraph
 
 
 @dataclass
@@ -59,8 +60,9 @@ class LoopClosureModule:
         """Initial values: the keyframe poses from odometry."""
         return self.pose_graph.values
 
-    def add_keyframe(self, key: int, T_world_keyframe: np.ndarray, points: np.ndarray,
-                     odometry_covariance_: np.ndarray | None = None) -> list[LoopClosure]:
+    def add_keyframe(
+        self, key: int, T_world_keyframe: np.ndarray, points: np.ndarray, odometry_covariance_: np.ndarray | None = None
+    ) -> list[LoopClosure]:
         """Add a keyframe at its odometry pose with its submap (points in the keyframe frame).
 
         The odometry factor links it to the previously added keyframe, with `odometry_covariance_` (6x6,
@@ -77,8 +79,11 @@ class LoopClosureModule:
             self._travelled[key] = 0.0
         else:
             distance = float(np.linalg.norm(T_world_keyframe[:3, 3] - self.values.atPose3(previous).translation()))
-            covariance = odometry_covariance(distance, self.config.graph) if odometry_covariance_ is None \
+            covariance = (
+                odometry_covariance(distance, self.config.graph)
+                if odometry_covariance_ is None
                 else odometry_covariance_
+            )
             self.pose_graph.add_pose(key, T_world_keyframe, previous, covariance)
             self._travelled[key] = self._travelled[previous] + distance
         self._last_key = key
@@ -104,12 +109,23 @@ class LoopClosureModule:
             if not pair.accepted:
                 continue
             factor = self.pose_graph.add_loop(other, key, pair.T_target_source, pair.covariance)
-            closed.append(LoopClosure(key, other, pair.T_target_source, pair.covariance, pair.inliers,
-                                      pair.overlap, "+".join(sources), pair.time_s, factor))
+            closed.append(
+                LoopClosure(
+                    key,
+                    other,
+                    pair.T_target_source,
+                    pair.covariance,
+                    pair.inliers,
+                    pair.overlap,
+                    "+".join(sources),
+                    pair.time_s,
+                    factor,
+                )
+            )
         if closed:
             self.loops.extend(closed)
             # The estimate steers the candidate search of the keyframes to come: re-optimise when a new loop
-            # does not hold at it yet (skips about half of them on the simulated drive).
+            # does not hold at it yet.
             if not all(self.pose_graph.holds(loop.factor) for loop in closed):
                 self.pose_graph.update_estimate()
         return closed
@@ -131,4 +147,3 @@ class LoopClosureModule:
         if description is None:
             description = self._descriptions[key] = describe_submap(self._submaps[key], self.config.registration)
         return description
-

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from sandro_slam.factors import between_factor, gaussian_noise
 from sandro_slam.offline import SlamResult
-from sandro_slam.pose_graph import between_factor, gaussian_noise
 
 
 @dataclass
@@ -45,7 +45,7 @@ class Session:
     T_keyframe_frame: np.ndarray  # (F, 4, 4) each frame's odometry pose relative to its keyframe
 
     @classmethod
-    def from_result(cls, result: SlamResult, name: str) -> "Session":
+    def from_result(cls, result: SlamResult, name: str) -> Session:
         """The session of an `OfflineSlam` run: its keyframes, optimised poses, odometry and loop factors."""
         loop_of_factor = {loop.factor.factor_index: loop for loop in result.loops}
         edges = []
@@ -56,26 +56,52 @@ class Session:
             target, source = (int(k) for k in factor.keys())
             loop = loop_of_factor.get(index)
             covariance = loop.covariance if loop is not None else np.asarray(gaussian_noise(factor).covariance())
-            edges.append(SessionEdge(target, source, factor.measured().matrix(), covariance,
-                                     "odometry" if loop is None else "loop", loop is None or loop.weight >= 0.5))
+            edges.append(
+                SessionEdge(
+                    target,
+                    source,
+                    factor.measured().matrix(),
+                    covariance,
+                    "odometry" if loop is None else "loop",
+                    loop is None or loop.weight >= 0.5,
+                )
+            )
         odometry_of_key = {kf.key: kf.T_world_keyframe for kf in result.keyframes}
-        T_keyframe_frame = np.stack([np.linalg.inv(odometry_of_key[int(k)]) @ pose
-                                     for k, pose in zip(result.keyframe_of_frame, result.odometry_poses)])
-        return cls(name, [kf.key for kf in result.keyframes],
-                   {kf.key: result.keyframe_poses[kf.key] for kf in result.keyframes},
-                   {kf.key: kf.points for kf in result.keyframes}, edges, result.timestamps.copy(),
-                   result.keyframe_of_frame.astype(np.int64), T_keyframe_frame)
+        T_keyframe_frame = np.stack(
+            [
+                np.linalg.inv(odometry_of_key[int(k)]) @ pose
+                for k, pose in zip(result.keyframe_of_frame, result.odometry_poses)
+            ]
+        )
+        return cls(
+            name,
+            [kf.key for kf in result.keyframes],
+            {kf.key: result.keyframe_poses[kf.key] for kf in result.keyframes},
+            {kf.key: kf.points for kf in result.keyframes},
+            edges,
+            result.timestamps.copy(),
+            result.keyframe_of_frame.astype(np.int64),
+            T_keyframe_frame,
+        )
 
     def frame_poses(self, keyframe_poses: dict[int, np.ndarray] | None = None) -> np.ndarray:
         """(F, 4, 4) T_world_frame of every frame, moved with its keyframe (default: the session's poses)."""
         poses = self.keyframe_poses if keyframe_poses is None else keyframe_poses
         return np.stack([poses[int(k)] for k in self.keyframe_of_frame]) @ self.T_keyframe_frame
 
-    def moved(self, T_new_world: np.ndarray) -> "Session":
+    def moved(self, T_new_world: np.ndarray) -> Session:
         """The same session with its poses expressed in another frame (submaps and factors are relative)."""
         poses = {k: T_new_world @ T for k, T in self.keyframe_poses.items()}
-        return Session(self.name, list(self.keys), poses, self.submaps, self.edges, self.timestamps,
-                       self.keyframe_of_frame, self.T_keyframe_frame)
+        return Session(
+            self.name,
+            list(self.keys),
+            poses,
+            self.submaps,
+            self.edges,
+            self.timestamps,
+            self.keyframe_of_frame,
+            self.T_keyframe_frame,
+        )
 
     def check(self) -> None:
         """ValueError naming the first inconsistency (a key without pose or submap, an edge to no keyframe)."""

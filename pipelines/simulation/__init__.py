@@ -5,7 +5,7 @@ LiDAR driving through a city of repeated and mirror-symmetric blocks; see `seque
 """
 
 from pipelines.simulation.sensor import SpinningLidar
-from pipelines.simulation.sequence import Frame, SimulatedSequence, simulate_sequence
+from pipelines.simulation.sequence import SimulatedSequence, simulate_sequence
 from pipelines.simulation.trajectory import Route, Trajectory
 from pipelines.simulation.world import CityLayout, World, build_city
 
@@ -13,7 +13,6 @@ VERSION = 2  # bumped whenever the same arguments simulate different data (the d
 
 __all__ = [
     "CityLayout",
-    "Frame",
     "Route",
     "SimulatedSequence",
     "SpinningLidar",

@@ -1,7 +1,7 @@
 """A simulated LiDAR sequence with ground truth: the world, the trajectory and the sensor put together.
 
 Time convention (all times in seconds):
-- Frame i has `timestamp` = i * sweep_period (sequence time starts at 0) = the start of its sweep.
+- Frame i (a `sandro_slam.Scan`) has `timestamp` = i * sweep_period (sequence time starts at 0): its sweep start.
 - `times` are per point, relative to `timestamp`, in [0, sweep_period); sweeps follow each other without gap.
 - `points` are raw, as a real driver delivers them: each point in the sensor frame at its own time
   `timestamp + times[k]`, so `poses_at(timestamp + times[k]) @ [points[k], 1]` lies on the world surface
@@ -21,23 +21,13 @@ sequence therefore starts from rest.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
 
 import numpy as np
 
 from pipelines.simulation.sensor import SpinningLidar
 from pipelines.simulation.trajectory import Route, Trajectory, random_wobble
 from pipelines.simulation.world import CityLayout, World, build_city
-
-
-@dataclass(frozen=True)
-class Frame:
-    """One LiDAR sweep (see the module docstring for the time and frame conventions)."""
-
-    index: int
-    timestamp: float  # sweep start [s]
-    points: np.ndarray  # (N, 3) float64 [m], each in the sensor frame at its own time
-    times: np.ndarray  # (N,) float64 [s] relative to `timestamp`, in [0, sweep_period)
+from sandro_slam.scan import Scan
 
 
 class SimulatedSequence:
@@ -74,7 +64,7 @@ class SimulatedSequence:
         """Ground truth T_world_sensor (M, 4, 4) at sequence times (M,) [s]."""
         return self.trajectory.poses(times)
 
-    def frame(self, index: int) -> Frame:
+    def frame(self, index: int) -> Scan:
         """Frame `index`; the same for a given seed whatever the order frames are asked for in."""
         if not 0 <= index < len(self):
             raise IndexError(f"frame {index} out of range [0, {len(self)})")
@@ -82,9 +72,9 @@ class SimulatedSequence:
         rng = np.random.default_rng([self.seed, 2, index])  # streams: city seed, wobble [seed, 1]
         poses = self.poses_at(timestamp + self.lidar.column_times)
         points, times = self.lidar.scan(self._scene, poses, self.noise_sigma, rng)
-        return Frame(index=index, timestamp=timestamp, points=points, times=times)
+        return Scan(timestamp, points, times)
 
-    def frames(self) -> Iterator[Frame]:
+    def frames(self) -> Iterator[Scan]:
         """All frames in order, one at a time."""
         for index in range(len(self)):
             yield self.frame(index)

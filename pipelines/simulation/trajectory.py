@@ -29,8 +29,7 @@ class Route:
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.transition <= 0.5 * np.pi * self.corner_radius:
-            raise ValueError(f"a turn of radius {self.corner_radius} m cannot hold two {self.transition} m "
-                             "transitions")
+            raise ValueError(f"a turn of radius {self.corner_radius} m cannot hold two {self.transition} m transitions")
 
     def _segments(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Per segment: start (x, y, heading) (S, 3), length (S,) [m], curvature at its start (S,) [1/m]

@@ -11,8 +11,7 @@ ground z = 0.
 
 Flat facades parallel to the street leave pitch to the ground alone, and KISS-ICP then drifts in pitch
 (its point-to-point matches on a plane follow the scan-line pattern, not the surface). Floor ledges and
-tree crowns give horizontal edges; with them and 6-16 m buildings the drift on the default sequence fell
-from about 2 deg per 50 m to about 0.5 deg (measured; 64 beams or narrower streets help too).
+tree crowns give horizontal edges, which hold that drift down (as 64 beams or narrower streets do too).
 """
 
 from __future__ import annotations
@@ -85,9 +84,7 @@ class World:
         """An open3d raycasting scene holding the world mesh (float32 internally)."""
         vertices, triangles = self.mesh()
         scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(
-            o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles.astype(np.uint32))
-        )
+        scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles.astype(np.uint32)))
         return scene
 
     def distance(self, points: np.ndarray) -> np.ndarray:

@@ -1,0 +1,108 @@
+"""The bag part of `sandro-bench slam`: the simulated drive written as a bag in each format and run end to end
+through `sandro-slam`'s `run_bag`, and how much faster than real time `BagScans` reads a 64-beam-sized bag."""
+
+from __future__ import annotations
+
+import shutil
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from pipelines.io.bags import FORMATS, BagScans, bag_path, delete_bag, write_bag
+from pipelines.io.trajectory import read_trajectory
+from pipelines.simulation.bag import ground_truth_path, simulate_bag
+from pipelines.slam_run import run_bag
+from sandro_slam import Scan, SlamConfig
+
+BEAMS, COLUMNS, RATE = 64, 2048, 10.0  # an Ouster OS-64 in 2048 x 10 mode
+
+
+def _ouster_like_scans(count: int, seed: int) -> Iterator[Scan]:
+    """`count` synthetic scans of BEAMS x COLUMNS points at RATE: random ranges on a spinning fan of beams,
+    5 % no-return points at the origin (as the Ouster driver publishes them), per-point times by column."""
+    rng = np.random.default_rng(seed)
+    azimuth = np.repeat(np.linspace(np.pi, -np.pi, COLUMNS, endpoint=False), BEAMS)
+    elevation = np.tile(np.deg2rad(np.linspace(-22.5, 22.5, BEAMS)), COLUMNS)
+    directions = np.stack(
+        [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], axis=1
+    )
+    times = np.repeat(np.arange(COLUMNS) / (COLUMNS * RATE), BEAMS)
+    for index in range(count):
+        ranges = rng.uniform(1.0, 80.0, BEAMS * COLUMNS)
+        ranges[rng.random(BEAMS * COLUMNS) < 0.05] = 0.0
+        yield Scan(1_700_000_000.0 + index / RATE, ranges[:, None] * directions, times)
+
+
+def bag_read_speed(folder: Path, fmt: str, scans: int = 100, seed: int = 0) -> dict:
+    """Write a bag of `scans` Ouster-like scans (64 x 2048 points, ouster-ros layout: point_step 48, t in ns)
+    in format `fmt` into `folder`, time opening it and iterating `BagScans` over it (read + decode, the bag
+    being in the page cache just after writing), then remove the bag (~6.3 MB per scan).
+
+    Returns {"format", "scans", "points_per_scan", "read_s", "realtime_factor"}: the factor is the bag's
+    duration at 10 Hz over read_s.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = bag_path(folder, "bag_read_speed", fmt)
+    write_bag(path, fmt, _ouster_like_scans(scans, seed), layout="ouster", overwrite=True)
+    try:
+        start = time.perf_counter()
+        points = 0
+        with BagScans(path) as bag:
+            for _, xyz, _ in bag:
+                points += len(xyz)
+        read_s = time.perf_counter() - start
+    finally:
+        delete_bag(path)
+    return {
+        "format": fmt,
+        "scans": scans,
+        "points_per_scan": BEAMS * COLUMNS,
+        "read_s": read_s,
+        "realtime_factor": scans / RATE / read_s,
+        "points_read_per_scan": points / max(scans, 1),
+    }
+
+
+def bag_experiment(
+    out: Path,
+    config: SlamConfig,
+    seed: int,
+    laps: int,
+    frames: int | None,
+    formats: tuple[str, ...] = FORMATS,
+    read_scans: int = 100,
+) -> dict[str, float]:
+    """Per format: write the drive as a bag (in out/bags, removed afterwards), run `run_bag` with the ground
+    truth, and report its ATE before/after loop closure, frames/s and the share of the run spent reading the bag;
+    then the reading speed of a 64 x 2048-point, 10 Hz bag of `read_scans` scans as a multiple of real time."""
+    metrics: dict[str, float] = {}
+    folder = out / "bags"
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        for fmt in formats:
+            bag = bag_path(folder, "drive", fmt)
+            print(f"bag {fmt}: simulating, then sandro-slam ...", flush=True)
+            simulate_bag(bag, fmt, seed=seed, laps=laps, frames=frames, overwrite=True)
+            _, run = run_bag(
+                bag,
+                out / f"sandro-slam_{fmt}",
+                config,
+                ground_truth=read_trajectory(ground_truth_path(bag)),
+                progress=True,
+            )
+            metrics[f"bag_{fmt}_ate_kiss_icp"] = run["ground_truth"]["ate_odometry_m"]
+            metrics[f"bag_{fmt}_ate_sandro_slam"] = run["ground_truth"]["ate_slam_m"]
+            metrics[f"bag_{fmt}_fps"] = run["frames_per_s"]
+            metrics[f"bag_{fmt}_read_share"] = run["bag_read_s"] / run["wall_s"]
+            delete_bag(bag)  # ~350 MB each
+            ground_truth_path(bag).unlink()
+        for fmt in formats:
+            print(f"bag {fmt}: reading speed of a 64-beam bag ...", flush=True)
+            speed = bag_read_speed(folder, fmt, read_scans)
+            metrics[f"bag_{fmt}_read_realtime_factor_64beam"] = speed["realtime_factor"]
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    return metrics

@@ -1,0 +1,125 @@
+"""`sandro-merge`: join sessions recorded at different times into one map, with no initial alignment.
+
+Sessions are sandro-slam results folders (their session/ subfolder) or bags, which are processed first (into
+OUT/sessions/). The merged frame is the first session's world frame. Writes into OUT (a new or empty folder,
+all or nothing):
+    transforms.yaml                 per session: T_merged_session (4x4) and the 6x6 covariance of its first
+                                    keyframe's pose (gtsam order [rotation, translation], keyframe frame)
+    map.ply                         the keyframe submaps at their merged poses, voxelised, coloured by session
+    trajectories/<name>.tum/.kitti  every frame's pose in the merged frame
+    graph.g2o                       the merged keyframe graph (keys: gtsam symbols 'a'+session index, key)
+    trajectories.png                top view of the merged trajectories with the inter-session loops
+    summary.json                    sessions, loops (with weights and free-space conflicts), timings
+When a session cannot be joined it says why, exits with 1 and writes nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from pipelines.cli.entry import EXIT_REFUSED, CommandError, Parser, one_line, run_command
+
+if TYPE_CHECKING:
+    from sandro_slam import MergeResult, Session, SlamConfig
+
+BAG_SUFFIXES = (".bag", ".mcap", ".db3")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line interface of `sandro-merge`."""
+    parser = Parser(prog="sandro-merge", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument(
+        "sessions", type=Path, nargs="+", metavar="SESSION", help="sandro-slam results folder or bag (at least two)"
+    )
+    parser.add_argument("--out", type=Path, required=True, help="output folder (new or empty)")
+    parser.add_argument("--config", type=Path, help="SlamConfig YAML (its merge section; default: built-in values)")
+    parser.add_argument("--topic", help="PointCloud2 topic of bags given as sessions")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; exit code 0 merged, 1 refused (sessions do not join), 2 bad input, 130 aborted."""
+    return run_command(build_parser(), _run, argv)
+
+
+def _run(args: argparse.Namespace) -> int:
+    if len(args.sessions) < 2:
+        raise CommandError("at least two sessions are needed")
+    if args.out.exists() and (not args.out.is_dir() or any(args.out.iterdir())):
+        raise CommandError(f"{args.out} exists and is not an empty folder: refusing to overwrite it")
+    from pipelines.io.atomic import atomic_dir
+    from pipelines.io.merge_results import write_merge
+    from sandro_slam import SlamConfig, merge_sessions
+
+    config = SlamConfig.load(args.config)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_dir(args.out) as out:
+        out.mkdir()
+        sessions = [_load_session(path, out / "sessions", config, args.topic) for path in args.sessions]
+        _unique_names(sessions)
+        result = merge_sessions(sessions, config)
+        if not result.ok:
+            refused = "; ".join(f"{name}: {why}" for name, why in result.refused.items())
+            raise CommandError(f"refused, nothing written: {refused}", EXIT_REFUSED)
+        write_merge(out, sessions, result, config)
+    print_summary(args.out, result)
+    return 0
+
+
+def _is_bag(path: Path) -> bool:
+    return (path.is_file() and path.suffix in BAG_SUFFIXES) or (path.is_dir() and (path / "metadata.yaml").is_file())
+
+
+def _load_session(path: Path, bag_out: Path, config: SlamConfig, topic: str | None) -> Session:
+    """A results folder's session, or a bag's after running sandro-slam on it into `bag_out`."""
+    from pipelines.io.session import read_session
+
+    if _is_bag(path):
+        from pipelines.slam_run import run_bag
+
+        print(f"sandro-merge: processing bag {path} ...", flush=True)
+        try:
+            folder, _ = run_bag(path, bag_out, config, topic)
+        except Exception as error:  # the bag reader's own errors: one line, like the other bad inputs
+            raise ValueError(f"{path}: {one_line(error)}") from None
+        return read_session(folder)
+    return read_session(path)
+
+
+def _unique_names(sessions: list[Session]) -> None:
+    seen: dict[str, int] = {}
+    for session in sessions:
+        count = seen.get(session.name, 0)
+        seen[session.name] = count + 1
+        if count:
+            session.name = f"{session.name}-{count}"
+
+
+def print_summary(out: Path, result: MergeResult) -> None:
+    """A few lines on stdout: each session's transform and the loops that joined it."""
+    import numpy as np
+
+    from pipelines.io.merge_results import merge_summary
+
+    info = merge_summary(result)
+    print(
+        f"sandro-merge: {len(result.joined)} sessions joined in {result.timings['total']:.1f} s "
+        f"({info['inter_session_loops_accepted']} inter-session loops kept of {info['inter_session_loops_verified']}"
+        " verified)"
+    )
+    for name in result.joined:
+        T = result.T_merged_session[name]
+        yaw = np.degrees(np.arctan2(T[1, 0], T[0, 0]))
+        sigma = np.sqrt(np.diag(result.covariance[name])[3:])
+        print(
+            f"  {name}: t = [{T[0, 3]:.2f}, {T[1, 3]:.2f}, {T[2, 3]:.2f}] m, yaw {yaw:.1f} deg, "
+            f"sigma_t {np.linalg.norm(sigma):.3f} m"
+        )
+    print(f"results in {out}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

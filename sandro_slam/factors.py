@@ -1,0 +1,27 @@
+"""gtsam factors and noise models in the project's conventions: covariances in gtsam Pose3 order [rotation,
+translation], for a right (body-frame) perturbation."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from sandro_slam.config import GraphConfig
+
+
+def between_factor(key_a: int, key_b: int, T_a_b: np.ndarray, covariance: np.ndarray) -> gtsam.BetweenFactorPose3:
+    """BetweenFactorPose3 measuring T_a_b, with a 6x6 covariance of its right (body-frame) perturbation."""
+    return gtsam.BetweenFactorPose3(key_a, key_b, gtsam.Pose3(T_a_b), gtsam.noiseModel.Gaussian.Covariance(covariance))
+
+
+def gaussian_noise(factor: gtsam.NoiseModelFactor) -> gtsam.noiseModel.Base:
+    """A factor's noise model, or the Gaussian a robust model wraps."""
+    model = factor.noiseModel()
+    return model.noise() if isinstance(model, gtsam.noiseModel.Robust) else model
+
+
+def odometry_covariance(distance: float, config: GraphConfig) -> np.ndarray:
+    """6x6 covariance of an odometry factor over `distance` metres: std growing linearly with travel."""
+    rot = config.odometry_rotation_sigma_per_m * distance + config.odometry_sigma_floor
+    trans = config.odometry_translation_sigma_per_m * distance + config.odometry_sigma_floor
+    return np.diag([rot**2] * 3 + [trans**2] * 3)

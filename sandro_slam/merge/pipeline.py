@@ -1,0 +1,201 @@
+"""merge_sessions: the steps of a merge in order (see the package docstring)."""
+
+from __future__ import annotations
+
+import time
+
+import gtsam
+import numpy as np
+
+from sandro_slam.config import MergeConfig, SlamConfig
+from sandro_slam.loop_registration import describe_submap
+from sandro_slam.merge.descriptor import place_candidates
+from sandro_slam.merge.free_space import FreeSpace, pair_conflict
+from sandro_slam.merge.graph import MergeResult, accepted_pairs, build_graph, merge_result
+from sandro_slam.merge.loops import Descriptions, InterSessionLoop, register_pair
+from sandro_slam.merge.voting import fits, spanning_transforms, vote
+from sandro_slam.robust_backend import robust_optimize
+from sandro_slam.session import Session
+from sandro_slam.timing import Stopwatch
+
+MIN_SUBMAP_POINTS = 10
+
+
+def merge_sessions(sessions: list[Session], config: SlamConfig | None = None) -> MergeResult:
+    """Join `sessions` (each in its own world frame) into the first one's frame; see the package docstring."""
+    config = config or SlamConfig()
+    merge = config.merge
+    _check(sessions)
+    start = time.perf_counter()
+    stopwatch = Stopwatch()
+    with stopwatch("describe"):
+        descriptions = [
+            {
+                k: describe_submap(s.submaps[k], config.registration)
+                for k in s.keys
+                if len(s.submaps[k]) >= MIN_SUBMAP_POINTS
+            }
+            for s in sessions
+        ]
+    with stopwatch("place_recognition"):
+        candidates = place_candidates(sessions, descriptions, config)
+    with stopwatch("registration"):
+        loops, tried = _register_candidates(candidates, descriptions, config)
+        votes = {
+            (i, j): vote(sessions, [lp for lp in loops if (lp.target_session, lp.source_session) == (i, j)], merge)
+            for i in range(len(sessions))
+            for j in range(i + 1, len(sessions))
+        }
+    with stopwatch("free_space_test"):
+        free = FreeSpace(descriptions, merge.free_space_voxel)
+        conflicts = {
+            pair: pair_conflict(voters, descriptions, free, merge)
+            for pair, (_, voters) in votes.items()
+            if len(voters) >= merge.min_loops
+        }
+
+    joined_pairs = {
+        pair: votes[pair][0] for pair, conflict in conflicts.items() if conflict <= merge.max_free_space_conflict
+    }
+    for loop in loops:  # loops disagreeing with the vote of their pair stay out of the graph
+        loop.voted = any(loop in votes[pair][1] for pair in joined_pairs)
+    T_merged = spanning_transforms(sessions, joined_pairs)
+    refused = {
+        session.name: _why(index, votes, conflicts, loops, merge)
+        for index, session in enumerate(sessions)
+        if index not in T_merged
+    }
+
+    with stopwatch("guided_registration"):
+        if merge.guided_radius > 0 and len(T_merged) > 1:
+            loops += _guided_loops(sessions, T_merged, descriptions, tried, config)
+    with stopwatch("optimization"):
+        graph, estimate, known, loop_factors = _optimize(sessions, T_merged, loops, refused, config)
+    with stopwatch("marginals"):
+        result = merge_result(sessions, T_merged, refused, loops, graph, estimate, known, loop_factors)
+    result.timings = {**stopwatch.seconds, "total": time.perf_counter() - start}
+    return result
+
+
+def _register_candidates(
+    candidates: dict[tuple[int, int], list[tuple[int, int]]], descriptions: Descriptions, config: SlamConfig
+) -> tuple[list[InterSessionLoop], set[tuple[int, int, int, int]]]:
+    """The verified loops among the place-recognition candidates (at most `max_candidate_pairs` per pair of
+    sessions, best first), and every (i, ki, j, kj) tried."""
+    loops, tried = [], set()
+    for (i, j), pairs in candidates.items():
+        for ki, kj in pairs[: config.merge.max_candidate_pairs]:
+            loop = register_pair(i, ki, j, kj, descriptions, config, "place_recognition")
+            tried.add((i, ki, j, kj))
+            if loop is not None:
+                loops.append(loop)
+    return loops, tried
+
+
+def _optimize(
+    sessions: list[Session],
+    T_merged: dict[int, np.ndarray],
+    loops: list[InterSessionLoop],
+    refused: dict[str, str],
+    config: SlamConfig,
+):
+    """Optimise the merged graph with the robust back end (setting each loop's weight); a session whose
+    inter-session loops the back end rejects until it is no longer joined to the first is refused (taken out of
+    `T_merged`, its reason added to `refused`) and the graph optimised again. Returns `build_graph`'s graph,
+    known inliers and loop factors, with the optimised values."""
+    min_loops = config.merge.min_loops
+    while True:
+        graph, values, known, loop_factors = build_graph(sessions, T_merged, loops, config.graph.prior_sigma)
+        estimate, weights = (
+            robust_optimize(graph, values, known, config.graph)
+            if loop_factors
+            else (gtsam.LevenbergMarquardtOptimizer(graph, values).optimize(), np.ones(graph.size()))
+        )
+        for loop in loops:
+            loop.weight = float("nan")
+        for loop, index in loop_factors:
+            loop.weight = float(weights[index])
+        kept = spanning_transforms(sessions, dict.fromkeys(accepted_pairs(loops, min_loops)), reachable_only=True)
+        dropped = [index for index in T_merged if index not in kept]
+        if not dropped:
+            return graph, estimate, known, loop_factors
+        for index in dropped:
+            n = sum(1 for lp in loops if index in (lp.target_session, lp.source_session) and lp.weight >= 0.5)
+            refused[sessions[index].name] = (
+                f"the robust back end kept only {n} of its inter-session loops "
+                f"(at least {min_loops} needed with a joined session)"
+            )
+            del T_merged[index]
+
+
+def _check(sessions: list[Session]) -> None:
+    if len(sessions) < 2:
+        raise ValueError(f"merging needs at least two sessions, got {len(sessions)}")
+    if len(sessions) > 26:
+        raise ValueError(f"at most 26 sessions can be merged, got {len(sessions)}")
+    names = [s.name for s in sessions]
+    if len(set(names)) != len(names):
+        raise ValueError(f"session names must differ: {names}")
+    for session in sessions:
+        session.check()
+
+
+def _why(
+    index: int, votes: dict, conflicts: dict[tuple[int, int], float], loops: list[InterSessionLoop], merge: MergeConfig
+) -> str:
+    """Why session `index` could not be joined by the votes of its verified loops."""
+    mine = [lp for lp in loops if index in (lp.target_session, lp.source_session)]
+    if not mine:
+        return "no inter-session loop passed verification (the sessions do not seem to overlap)"
+    tested = {pair: c for pair, c in conflicts.items() if index in pair}
+    if tested:
+        pair = min(tested, key=tested.get)
+        return (
+            f"{len(votes[pair][1])} inter-session loops agree on one transform, but it puts a median "
+            f"{100 * tested[pair]:.1f} % of the submap keypoints where the other session saw free space "
+            f"(at most {100 * merge.max_free_space_conflict:.1f} %): an aliased place, not an overlap"
+        )
+    agree = max(len(voters) for pair, (_, voters) in votes.items() if index in pair)
+    return (
+        f"{len(mine)} inter-session loops passed verification but at most {agree} agree on one transform "
+        f"(at least {merge.min_loops} needed)"
+    )
+
+
+def _guided_loops(
+    sessions: list[Session],
+    T_merged: dict[int, np.ndarray],
+    descriptions: Descriptions,
+    tried: set[tuple[int, int, int, int]],
+    config: SlamConfig,
+) -> list[InterSessionLoop]:
+    """Register, for every keyframe of a joined session, the nearest keyframe of each earlier joined session
+    within `guided_radius` in the merged frame (pairs not tried yet)."""
+    found = []
+    joined = sorted(T_merged)
+    positions = {
+        i: (
+            np.array([T_merged[i] @ sessions[i].keyframe_poses[k][:, 3] for k in descriptions[i]])[:, :3],
+            list(descriptions[i]),
+        )
+        for i in joined
+        if descriptions[i]
+    }
+    for a, j in enumerate(joined):
+        for kj in descriptions[j]:
+            p = (T_merged[j] @ sessions[j].keyframe_poses[kj][:, 3])[:3]
+            for i in joined[:a]:
+                if i not in positions:
+                    continue
+                xyz, keys = positions[i]
+                distance = np.linalg.norm(xyz - p, axis=1)
+                nearest = int(np.argmin(distance))
+                ki = keys[nearest]
+                if distance[nearest] > config.merge.guided_radius or (i, ki, j, kj) in tried:
+                    continue
+                tried.add((i, ki, j, kj))
+                loop = register_pair(i, ki, j, kj, descriptions, config, "guided")
+                if loop is not None:
+                    loop.voted = fits(sessions, loop, np.linalg.inv(T_merged[i]) @ T_merged[j], config.merge)
+                    found.append(loop)
+    return found

@@ -1,0 +1,70 @@
+"""`sandro-bench merge`'s reference merge: perfect registration, sessions moved rigidly."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pipelines.bench.merge import _joint_ate, _perfectly_registered
+from pipelines.evaluation import pose_errors
+
+
+def _drive(start: tuple[float, float], heading_deg: float, n: int = 60) -> np.ndarray:
+    """(n, 4, 4) true poses 1 m apart along a straight street."""
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    heading = np.radians(heading_deg)
+    poses[:, :3, :3] = Rotation.from_euler("z", heading).as_matrix()
+    poses[:, 0, 3] = start[0] + np.arange(n) * np.cos(heading)
+    poses[:, 1, 3] = start[1] + np.arange(n) * np.sin(heading)
+    return poses
+
+
+def _transform(yaw_deg: float, xyz, roll_deg: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("zx", [yaw_deg, roll_deg], degrees=True).as_matrix()
+    T[:3, 3] = xyz
+    return T
+
+
+# A drives east along y = 0; S starts 40 m north, drives south and then east along A's street.
+TRUTH_A = _drive((0.0, 0.0), 0.0)
+TRUTH_S = np.concatenate([_drive((20.0, 40.0), -90.0, 40), _drive((20.0, 0.0), 0.0, 40)])
+T_A_WORLD = _transform(30.0, [5.0, -3.0, 1.0])
+T_S_WORLD = _transform(-100.0, [60.0, 20.0, 0.0])
+
+
+def test_error_free_sessions_are_placed_at_the_true_transform():
+    T = _perfectly_registered(T_A_WORLD @ TRUTH_A, TRUTH_A, T_S_WORLD @ TRUTH_S, TRUTH_S)
+    rotation_deg, translation_m = pose_errors(T, T_A_WORLD @ np.linalg.inv(T_S_WORLD))
+    assert rotation_deg < 1e-4 and translation_m < 1e-9
+    ates = _joint_ate([T_A_WORLD @ TRUTH_A, T @ T_S_WORLD @ TRUTH_S], [TRUTH_A, TRUTH_S])
+    assert max(ates) < 1e-9
+
+
+def test_a_session_bent_away_from_the_overlap_keeps_its_own_error():
+    """S's own map is right along the shared street but its north leg is rolled 0.3 deg about a point 6 m
+    north of the corner (beyond the overlap): registered perfectly on the street, the far end stays 0.18 m
+    off, which is what the reference measures (the sessions' own errors, not the merge's)."""
+    pivot = _transform(0.0, [20.0, 6.0, 0.0])
+    bend = pivot @ _transform(0.0, [0.0, 0.0, 0.0], roll_deg=0.3) @ np.linalg.inv(pivot)
+    north = TRUTH_S[:, 1, 3] > 6.0
+    own_s = T_S_WORLD @ np.where(north[:, None, None], bend @ TRUTH_S, TRUTH_S)
+    T = _perfectly_registered(T_A_WORLD @ TRUTH_A, TRUTH_A, own_s, TRUTH_S)
+    placed, wanted = T @ own_s, T_A_WORLD @ TRUTH_S
+    assert np.abs(placed[~north, :3, 3] - wanted[~north, :3, 3]).max() < 1e-9
+    far_end = np.linalg.norm(placed[0, :3, 3] - wanted[0, :3, 3])
+    assert far_end == pytest.approx(np.radians(0.3) * 34.0, rel=0.01)
+
+
+def test_sessions_that_do_not_overlap_have_no_reference():
+    far = _drive((100.0, 0.0), 0.0)
+    with pytest.raises(ValueError, match="within 5.0 m"):
+        _perfectly_registered(TRUTH_A, TRUTH_A, far, far)
+
+
+def test_a_session_on_one_straight_street_gets_its_roll_from_the_frames_axes():
+    """Positions along one straight street leave the roll about it open; the frames' axes pin it."""
+    truth_s = _drive((10.0, 0.0), 0.0, 30)
+    T_s_world = _transform(40.0, [3.0, 4.0, 0.0], roll_deg=0.5)
+    T = _perfectly_registered(T_A_WORLD @ TRUTH_A, TRUTH_A, T_s_world @ truth_s, truth_s)
+    rotation_deg, translation_m = pose_errors(T, T_A_WORLD @ np.linalg.inv(T_s_world))
+    assert rotation_deg < 1e-4 and translation_m < 1e-9

@@ -1,0 +1,129 @@
+"""`sandro-bench posegraph` on small pose graphs written here: outputs, outlier rejection, seeding, errors."""
+
+import csv
+from pathlib import Path
+
+import gtsam
+import numpy as np
+import pytest
+
+from pipelines.bench.posegraph import RESULT_FIELDS, inject_outliers, load_problem
+from pipelines.cli.bench import main
+
+LAP = 30  # poses per lap of the circle
+SIGMA_T, SIGMA_R = 0.05, 0.01  # [m], [rad]: std in the written information matrices
+NOISE_SHARE = 0.5  # measurements get half that std: no real loop lands in the chi-square tail
+
+
+def _circle(laps: int = 2) -> list[gtsam.Pose3]:
+    """Poses on a 10 m circle, driven `laps` times, gently rising and falling."""
+    poses = []
+    for i in range(laps * LAP):
+        angle = 2 * np.pi * i / LAP
+        position = [10 * np.cos(angle), 10 * np.sin(angle), 0.5 * np.sin(3 * angle)]
+        poses.append(gtsam.Pose3(gtsam.Rot3.Yaw(angle + np.pi / 2), np.array(position)))
+    return poses
+
+
+def _g2o_information(diagonal: list[float]) -> str:
+    """The upper triangle of a diagonal information matrix, row by row, as g2o writes it."""
+    return " ".join(str(diagonal[i] if i == j else 0) for i in range(len(diagonal)) for j in range(i, len(diagonal)))
+
+
+def _noisy(rng: np.random.Generator, pose: gtsam.Pose3) -> gtsam.Pose3:
+    xi = NOISE_SHARE * np.concatenate([rng.normal(scale=SIGMA_R, size=3), rng.normal(scale=SIGMA_T, size=3)])
+    return pose.compose(gtsam.Pose3.Expmap(xi))
+
+
+def _write_g2o(path: Path, dim: int, seed: int = 0) -> None:
+    """Odometry along two laps plus a loop between every pose of the second lap and the first, with the
+    odometry chain as initial values; 3D (EDGE_SE3:QUAT) or 2D (EDGE_SE2, the circle in the plane)."""
+    rng = np.random.default_rng(seed)
+    truth = _circle()
+    edges = [(i, i + 1) for i in range(len(truth) - 1)] + [(i, i + LAP) for i in range(LAP)]
+    measured = {(a, b): _noisy(rng, truth[a].between(truth[b])) for a, b in edges}
+    chain = [truth[0]]
+    for i in range(len(truth) - 1):
+        chain.append(chain[-1].compose(measured[(i, i + 1)]))
+    lines = []
+    if dim == 3:
+        info = _g2o_information([1 / SIGMA_T**2] * 3 + [1 / SIGMA_R**2] * 3)  # g2o order [t, r]
+        for i, pose in enumerate(chain):
+            q = pose.rotation().toQuaternion()
+            t = " ".join(map(str, pose.translation()))
+            lines.append(f"VERTEX_SE3:QUAT {i} {t} {q.x()} {q.y()} {q.z()} {q.w()}")
+        for (a, b), pose in measured.items():
+            q = pose.rotation().toQuaternion()
+            t = " ".join(map(str, pose.translation()))
+            lines.append(f"EDGE_SE3:QUAT {a} {b} {t} {q.x()} {q.y()} {q.z()} {q.w()} {info}")
+    else:
+        info = _g2o_information([1 / SIGMA_T**2] * 2 + [1 / SIGMA_R**2])
+        for i, pose in enumerate(chain):
+            lines.append(f"VERTEX_SE2 {i} {pose.x()} {pose.y()} {pose.rotation().yaw()}")
+        for (a, b), pose in measured.items():
+            lines.append(f"EDGE_SE2 {a} {b} {pose.x()} {pose.y()} {pose.rotation().yaw()} {info}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+@pytest.fixture
+def data(tmp_path: Path) -> Path:
+    folder = tmp_path / "graphs"
+    folder.mkdir()
+    _write_g2o(folder / "circle3d.g2o", 3)
+    _write_g2o(folder / "circle2d.g2o", 2)
+    return folder
+
+
+def _rows(out: Path) -> list[dict[str, str]]:
+    with (out / "results.csv").open() as handle:
+        return list(csv.DictReader(handle))
+
+
+@pytest.mark.parametrize("graph", ["circle3d", "circle2d"])
+def test_quick_run_writes_outputs_and_gnc_rejects_the_injected_loops(data, tmp_path, capsys, graph):
+    out = tmp_path / "bench"
+    code = main(["posegraph", "--quick", "--data", str(data), "--graphs", graph, "--rates", "10,50",
+                 "--methods", "gnc_tls,gnc_gm,lm", "--out", str(out)])  # fmt: skip
+    assert code == 0
+    rows = _rows(out)
+    assert list(rows[0]) == RESULT_FIELDS and len(rows) == 2 * 3
+    assert {(row["rate_pct"], row["n_outliers"]) for row in rows} == {("10", "3"), ("50", "15")}
+    for row in rows:
+        if row["method"] == "gnc_tls":
+            assert (row["precision"], row["recall"], row["real_rejected"]) == ("1", "1", "0"), row
+            assert row["within_1pct"] == "1" and float(row["pose_rel"]) < 1e-4, row
+        if row["method"] == "gnc_gm":  # soft weights: every injected loop below 0.5, the poses close
+            assert row["recall"] == "1" and float(row["pose_rel"]) < 0.01, row
+    plain = [row for row in rows if row["method"] == "lm" and row["rate_pct"] == "50"]
+    assert float(plain[0]["trans_rmse_m"]) > 0.1  # the injected loops do hurt least squares
+    assert (out / "reference.csv").is_file() and (out / "settings.json").is_file()
+    assert (out / "posegraph.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert graph in capsys.readouterr().out
+
+
+def test_injected_loops_are_seeded_and_skip_neighbours(data):
+    problem = load_problem(data / "circle3d.g2o")
+    first, again = inject_outliers(problem, 50, seed=3), inject_outliers(problem, 50, seed=3)
+    other = inject_outliers(problem, 50, seed=4)
+    assert len(first) == round(0.5 * len(problem.loops))
+    assert [f.keys() for f in first] == [f.keys() for f in again] != [f.keys() for f in other]
+    assert all(np.allclose(a.measured().matrix(), b.measured().matrix()) for a, b in zip(first, again))
+    assert all(abs(a - b) > 1 for a, b in (f.keys() for f in first))
+    assert all(np.linalg.norm(f.measured().translation()) <= 5.0 for f in first)
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--data", "/no/such/folder"], "no such folder"),
+        (["--graphs", "nope"], "unknown or no graphs"),
+        (["--methods", "nope"], "unknown or no methods"),
+        (["--rates", "x"], "expected a comma list of integers"),
+        (["--info-scale", "0"], "expected positive numbers or 'auto'"),
+    ],
+)
+def test_bad_arguments_exit_2_with_one_line(data, tmp_path, capsys, args, message):
+    defaults = [] if "--data" in args else ["--data", str(data)]
+    assert main(["posegraph", *defaults, "--out", str(tmp_path / "out"), *args]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err

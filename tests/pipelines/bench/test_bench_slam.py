@@ -1,0 +1,79 @@
+"""`sandro-bench slam` wiring, on a few frames of the simulated drive."""
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from pipelines.bench.bags import bag_experiment
+from pipelines.bench.slam import keyframe_floor, loops_against_truth
+from pipelines.cli.bench import main
+from sandro_slam import SlamConfig
+
+
+@pytest.mark.slow
+def test_short_run_writes_its_outputs(tmp_path):
+    assert main(["slam", "--frames", "25", "--no-kiss-slam", "--no-bags", "--out", str(tmp_path)]) == 0
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["frames"] == 25 and metrics["ate_sandro_slam"] < 0.5
+    for name in ("metrics.csv", "trajectories.png", "sandro-slam.tum", "ground_truth.tum", "KISS-ICP.tum"):
+        assert (tmp_path / name).is_file()
+
+
+def test_missing_config_is_a_usage_error(tmp_path, capsys):
+    assert main(["slam", "--config", str(tmp_path / "nope.yaml")]) == 2
+    assert "no such config file" in capsys.readouterr().err
+
+
+def test_bag_experiment_runs_a_bag_end_to_end_and_times_reading(tmp_path):
+    metrics = bag_experiment(tmp_path, SlamConfig(), seed=0, laps=1, frames=12, formats=("ros2-mcap",), read_scans=3)
+    assert metrics["bag_ros2-mcap_ate_sandro_slam"] < 0.3
+    assert 0 < metrics["bag_ros2-mcap_read_share"] < 1 and metrics["bag_ros2-mcap_read_realtime_factor_64beam"] > 0
+    assert not (tmp_path / "bags").exists()  # the bags are removed
+    assert (tmp_path / "sandro-slam_ros2-mcap" / "latest" / "metrics.json").is_file()
+
+
+def _poses(xs):
+    poses = np.tile(np.eye(4), (len(xs), 1, 1))
+    poses[:, 0, 3] = xs
+    return poses
+
+
+def test_keyframe_floor_is_the_error_no_rigid_move_per_keyframe_removes():
+    truth = _poses(np.arange(6.0))
+    keyframes = [SimpleNamespace(key=0), SimpleNamespace(key=1)]
+    of_frame = np.array([0, 0, 0, 1, 1, 1])
+    shifted = truth.copy()
+    shifted[:3, :3, 3] += [5.0, -2.0, 1.0]  # keyframe 0 off by one rigid move, keyframe 1 by another
+    shifted[3:, 1, 3] += 3.0
+    result = SimpleNamespace(keyframes=keyframes, keyframe_of_frame=of_frame, odometry_poses=shifted)
+    assert keyframe_floor(result, truth) == pytest.approx(0.0, abs=1e-9)
+    bent = truth.copy()
+    bent[1, 1, 3] += 0.3  # the middle scan of keyframe 0 off the line its neighbours lie on
+    result.odometry_poses = bent
+    floor = keyframe_floor(result, truth)
+    assert 0.0 < floor < 0.3 / np.sqrt(6)  # the fit spreads the bend over the keyframe's three scans
+
+
+def test_loops_against_truth_tells_wrong_loops_from_real_ones():
+    truth = _poses(np.arange(0.0, 60.0, 10.0))  # six keyframes 10 m apart, one scan each
+    keyframes = [SimpleNamespace(key=k, first_frame=k) for k in range(6)]
+
+    def loop(target, source, offset, weight):
+        measured = np.linalg.inv(truth[target]) @ truth[source]
+        measured[0, 3] += offset
+        return SimpleNamespace(target_key=target, source_key=source, T_target_source=measured, weight=weight)
+
+    loops = [
+        loop(0, 3, 0.02, 1.0),
+        loop(1, 4, 0.04, 1.0),
+        loop(2, 5, 0.06, 0.0),  # real, one rejected
+        loop(0, 5, 12.0, 0.0),
+        loop(1, 5, -8.0, 1.0),
+    ]  # wrong (aliased streets), one kept
+    metrics = loops_against_truth(SimpleNamespace(keyframes=keyframes, loops=loops), truth)
+    assert metrics["loops_wrong"] == 2 and metrics["loops_wrong_rejected"] == 1
+    assert metrics["loops_real_rejected"] == 1
+    assert metrics["loop_error_median_m"] == pytest.approx(0.04)
+    assert metrics["loop_error_median_deg"] == pytest.approx(0.0, abs=1e-6)

@@ -1,0 +1,45 @@
+"""`sandro-simulate`: a bag and its ground truth, refusals to overwrite, bad arguments in one line."""
+
+import numpy as np
+import pytest
+
+from pipelines.cli.simulate import main
+from pipelines.io.bags import BagScans
+from pipelines.io.trajectory import read_tum
+from pipelines.simulation import simulate_sequence
+from pipelines.simulation.bag import ground_truth_path
+
+
+def test_simulate_cli(tmp_path, capsys):
+    out = tmp_path / "sim.bag"
+    assert main([str(out), "--frames", "3", "--seed", "2", "--noise", "0.01"]) == 0
+    assert "wrote" in capsys.readouterr().out
+    with BagScans(out) as bag:
+        stamps = [stamp for stamp, _, _ in bag]
+    gt_times, gt_poses = read_tum(ground_truth_path(out))
+    assert ground_truth_path(out).name == "sim.bag.gt.tum"
+    assert np.allclose(np.diff(gt_times), 0.01, atol=1e-6) and gt_times[0] == pytest.approx(stamps[0], abs=1e-6)
+    assert gt_times[-1] == pytest.approx(stamps[-1] + 0.1, abs=1e-6)
+    sequence = simulate_sequence(seed=2, frames=3)
+    np.testing.assert_allclose(gt_poses[::10][:3], sequence.ground_truth, atol=1e-6)
+
+    assert main([str(out), "--frames", "3"]) == 2  # refuses to overwrite
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "exists (use --force" in err
+    assert main([str(tmp_path / "folder"), "--frames", "2", "--format", "ros2-sqlite3"]) == 0
+    assert main([str(tmp_path / "folder"), "--frames", "1", "--format", "ros2-mcap", "--force"]) == 0
+    assert BagScans(tmp_path / "folder").count == 1
+    capsys.readouterr()
+    bad_arguments = [
+        [],
+        ["x.bag", "--laps", "0"],
+        ["x.bag", "--format", "ros3"],
+        ["y", "--format", "ros1"],
+        ["x.bag", "--noise", "-1"],
+        ["x.bag", "--frames", "two"],
+    ]
+    for arguments in bad_arguments:
+        assert main([str(tmp_path / arguments[0]), *arguments[1:]] if arguments else []) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith("sandro-simulate: error:"), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["folder", "folder.gt.tum", "sim.bag", "sim.bag.gt.tum"]

@@ -1,0 +1,176 @@
+"""`sandro-slam`: a bag in, a results folder out; bad input gets one line and a non-zero exit."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipelines.cli.slam import main
+from pipelines.io.bags import write_bag
+from pipelines.io.trajectory import read_tum
+from pipelines.simulation import simulate_sequence
+from pipelines.simulation.bag import ground_truth_path, simulate_bag
+
+FRAMES = 40
+OUTPUTS = [
+    "poses.tum",
+    "poses.kitti",
+    "odometry.tum",
+    "odometry.kitti",
+    "graph.g2o",
+    "loops.csv",
+    "map.ply",
+    "trajectory.png",
+    "config.yaml",
+    "metrics.json",
+]
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("bags") / "city.bag"
+    simulate_bag(path, "ros1", frames=FRAMES)
+    return path
+
+
+def _one_line_error(capsys, *words: str) -> None:
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err, err
+    assert err.startswith("sandro-slam: error:"), err
+    for word in words:
+        assert word in err, err
+
+
+@pytest.mark.slow
+def test_a_run_writes_every_output_and_evaluates_against_the_ground_truth(bag, tmp_path, capsys):
+    out = tmp_path / "results"
+    assert main([str(bag), "--gt", str(ground_truth_path(bag)), "--out", str(out), "--quiet"]) == 0
+    folder = (out / "latest").resolve()
+    assert sorted(p.name for p in folder.iterdir() if p.is_file()) == sorted(OUTPUTS)
+    metrics = json.loads((folder / "metrics.json").read_text())
+    assert metrics["frames"] == FRAMES and metrics["topic"] == "/points" and not metrics["interrupted"]
+    assert metrics["ground_truth"]["frames_matched"] == FRAMES
+    assert metrics["ground_truth"]["ate_slam_m"] < 0.3
+    times, poses = read_tum(folder / "poses.tum")
+    assert len(times) == FRAMES and np.all(np.diff(times) > 0)
+    assert times[0] > 1e9  # header stamps, on the bag's clock
+    printed = capsys.readouterr().out
+    assert "ATE odometry" in printed and str(folder.name) in printed
+
+    assert main([str(bag), "--out", str(out), "--quiet", "--max-frames", "5"]) == 0
+    second = (out / "latest").resolve()
+    assert second != folder and (folder / "metrics.json").is_file()  # a new folder; the old one is kept
+    assert json.loads((second / "metrics.json").read_text())["frames"] == 5
+
+
+@pytest.mark.parametrize("fmt", ["ros2-sqlite3", "ros2-mcap"])
+def test_ros2_bags(tmp_path, fmt):
+    path = tmp_path / "city"
+    simulate_bag(path, fmt, frames=8)
+    assert main([str(path), "--gt", str(ground_truth_path(path)), "--out", str(tmp_path / "r"), "--quiet"]) == 0
+    assert json.loads((tmp_path / "r" / "latest" / "metrics.json").read_text())["frames"] == 8
+
+
+def test_a_bag_without_per_point_times(tmp_path):
+    # Deskewed clouds from a LiDAR-inertial front end carry no time field: read, and run without deskewing.
+    scans = [
+        (1_700_000_000.0 + 0.1 * i, scan.points, np.empty(0))
+        for i, scan in enumerate(simulate_sequence(seed=3, frames=6).frames())
+    ]
+    write_bag(tmp_path / "no_times.bag", "ros1", scans)
+    assert main([str(tmp_path / "no_times.bag"), "--out", str(tmp_path / "r"), "--quiet"]) == 0
+    metrics = json.loads((tmp_path / "r" / "latest" / "metrics.json").read_text())
+    assert metrics["frames"] == 6 and metrics["frames_skipped"] == 0
+
+
+def test_missing_and_corrupt_bags(tmp_path, capsys):
+    assert main([str(tmp_path / "nope.bag"), "--out", str(tmp_path / "r")]) == 2
+    _one_line_error(capsys, "nope.bag")
+    corrupt = tmp_path / "corrupt.bag"
+    corrupt.write_bytes(np.random.default_rng(0).bytes(5000))
+    assert main([str(corrupt), "--out", str(tmp_path / "r")]) == 2
+    _one_line_error(capsys, "corrupt.bag")
+    assert not (tmp_path / "r").exists() or not any((tmp_path / "r").iterdir())
+
+
+def test_wrong_topic_lists_the_choices(bag, tmp_path, capsys):
+    assert main([str(bag), "--topic", "/velodyne", "--out", str(tmp_path / "r")]) == 2
+    _one_line_error(capsys, "/velodyne", "/points")
+
+
+def test_empty_messages(tmp_path, capsys):
+    path = tmp_path / "empty.bag"
+    write_bag(path, "ros1", ((1.0 + 0.1 * i, np.empty((0, 3)), np.empty(0)) for i in range(3)))
+    assert main([str(path), "--out", str(tmp_path / "r"), "--quiet"]) == 2
+    _one_line_error(capsys, "no frame")
+    assert not any((tmp_path / "r").iterdir())  # no results folder left behind
+
+
+def test_unwritable_out(bag, tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert main([str(bag), "--out", str(blocker / "r")]) == 2
+    _one_line_error(capsys, "cannot write results")
+
+
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ("graph: [unclosed", ["not valid YAML"]),
+        ("graph:\n  robust: magic\n", ["graph.robust"]),
+        ("nonsense_key: 1\n", ["nonsense_key"]),
+    ],
+)
+def test_malformed_config(bag, tmp_path, capsys, text, words):
+    config = tmp_path / "c.yaml"
+    config.write_text(text)
+    assert main([str(bag), "--config", str(config), "--out", str(tmp_path / "r")]) == 2
+    _one_line_error(capsys, "c.yaml", *words)
+
+
+@pytest.mark.parametrize("text", ["1 2 3\n", "garbage\n"])
+def test_malformed_ground_truth(bag, tmp_path, capsys, text):
+    gt = tmp_path / "gt.txt"
+    gt.write_text(text)
+    assert main([str(bag), "--gt", str(gt), "--out", str(tmp_path / "r")]) == 2
+    _one_line_error(capsys, "gt.txt")
+
+
+@pytest.mark.slow
+def test_ground_truth_from_another_time(bag, tmp_path, capsys):
+    times, poses = read_tum(ground_truth_path(bag))
+    gt = tmp_path / "late.tum"
+    np.savetxt(gt, np.column_stack([times + 1e6, poses[:, :3, 3], np.tile([0, 0, 0, 1.0], (len(times), 1))]))
+    assert main([str(bag), "--gt", str(gt), "--out", str(tmp_path / "r"), "--quiet"]) == 2
+    _one_line_error(capsys, "ground truth")
+    assert not any((tmp_path / "r").iterdir())
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_and_still_writes_the_results(bag, tmp_path):
+    out = tmp_path / "r"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "pipelines.cli.slam", str(bag), "--out", str(out), "--quiet"],
+        cwd=Path(__file__).resolve().parents[3],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    deadline = time.monotonic() + 60
+    while not (out.is_dir() and any(out.iterdir())) and time.monotonic() < deadline:  # the run folder: processing
+        time.sleep(0.05)
+    time.sleep(0.5)
+    os.killpg(process.pid, signal.SIGINT)  # as a terminal does: to the whole process group
+    stdout, stderr = process.communicate(timeout=120)
+    assert process.returncode == 0, stderr
+    assert "Traceback" not in stderr and "stopping after this scan" in stderr
+    metrics = json.loads((out / "latest" / "metrics.json").read_text())
+    assert metrics["interrupted"] and 0 < metrics["frames"] < FRAMES
+    assert (out / "latest" / "map.ply").is_file()

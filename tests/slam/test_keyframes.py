@@ -1,0 +1,105 @@
+"""KeyframeBuilder: where keyframes start and what their submaps hold; place recognition's spacing and pickling."""
+
+import pickle
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipelines.simulation import simulate_sequence
+from sandro_core.geometry import transform_points
+from sandro_slam.candidates import PlaceRecognition
+from sandro_slam.config import KeyframeConfig, LoopDetectionConfig
+from sandro_slam.keyframes import KeyframeBuilder
+
+
+def _pose(x: float, yaw_deg: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[0, 3] = x
+    return T
+
+
+def test_submaps_hold_each_voxel_once_in_the_keyframe_frame_within_the_radius():
+    rng = np.random.default_rng(0)
+    world = rng.uniform(-40.0, 40.0, size=(3000, 3))  # a static scene, seen from every pose
+    config = KeyframeConfig(distance=10.0, angle_deg=30.0, submap_voxel=0.5, submap_radius=30.0)
+    builder = KeyframeBuilder(config)
+    poses = [_pose(x, yaw_deg=2.0 * x) for x in np.arange(0.0, 25.0, 2.5)]
+    completed = []
+    for index, T in enumerate(poses):
+        keyframe = builder.add_scan(index, T, world @ T[:3, :3] - T[:3, 3] @ T[:3, :3])  # the scene in the scan frame
+        if keyframe is not None:
+            completed.append(keyframe)
+    completed.append(builder.flush())
+
+    assert [k.first_frame for k in completed] == [0, 4, 8]  # every 10 m of travel
+    assert [k.key for k in completed] == [0, 1, 2]
+    for keyframe in completed:
+        T = keyframe.T_world_keyframe
+        expected = world @ T[:3, :3] - T[:3, 3] @ T[:3, :3]  # the scene in the keyframe frame
+        voxels = np.floor(keyframe.points / config.submap_voxel).astype(int)
+        assert len(np.unique(voxels, axis=0)) == len(keyframe.points)  # one point per voxel
+        assert np.all(np.linalg.norm(keyframe.points, axis=1) <= config.submap_radius)
+        inside = expected[np.linalg.norm(expected, axis=1) <= config.submap_radius]
+        assert len(keyframe.points) == len(np.unique(np.floor(inside / config.submap_voxel).astype(int), axis=0))
+        # every submap point is a scene point (each scan saw the same scene), moved into the keyframe frame
+        distances, _ = cKDTree(expected).query(keyframe.points)
+        assert distances.max() < 1e-9
+    assert builder.flush() is None
+
+
+def test_a_turn_starts_a_keyframe():
+    builder = KeyframeBuilder(KeyframeConfig(distance=10.0, angle_deg=30.0))
+    points = np.ones((5, 3))
+    assert builder.add_scan(0, _pose(0.0), points) is None  # the first keyframe starts
+    assert builder.add_scan(1, _pose(1.0, 20.0), points) is None
+    assert builder.add_scan(2, _pose(2.0, 35.0), points).key == 0  # 35 deg from the keyframe: the next one starts
+    assert builder.current_key() == 1
+
+
+class _Recorder:
+    """Stands in for MapClosures: records the keyframes it sees, finds nothing."""
+
+    def __init__(self):
+        self.seen = []
+
+    def get_closures(self, key, points):
+        self.seen.append(key)
+        return []
+
+
+def test_place_recognition_sees_keyframes_map_closures_spacing_apart():
+    recognition = PlaceRecognition(LoopDetectionConfig(map_closures_spacing=15.0))
+    recognition._closures = _Recorder()
+    travelled = {}
+    for key in range(8):
+        travelled[key] = 10.0 * key
+        assert recognition.candidates(key, np.zeros((10, 3)), travelled) == []
+    assert recognition._closures.seen == [0, 2, 4, 6]
+
+    every = PlaceRecognition(LoopDetectionConfig(map_closures_spacing=0.0))
+    every._closures = _Recorder()
+    for key in range(8):
+        every.candidates(key, np.zeros((10, 3)), travelled)
+    assert every._closures.seen == list(range(8))
+
+
+def test_place_recognition_unpickled_finds_what_the_original_finds():
+    # MapClosures does not pickle: the unpickled one rebuilds its database from the submaps it saw.
+    sequence = simulate_sequence(seed=1, frames=10)
+    poses = sequence.poses_at(np.array([frame.timestamp for frame in sequence.frames()]))
+    submap = np.concatenate(
+        [
+            transform_points(np.linalg.inv(poses[0]) @ pose, frame.points)
+            for pose, frame in zip(poses, sequence.frames())
+        ]
+    )
+    other = np.random.default_rng(0).uniform([-30, -30, -2], [30, 30, 0], (20000, 3))  # another place: rough ground
+    travelled = {0: 0.0, 10: 100.0, 40: 400.0}  # MapClosures matches only keys at least 4 apart
+    original = PlaceRecognition(LoopDetectionConfig(map_closures_spacing=0.0))
+    original.candidates(0, submap, travelled)
+    original.candidates(10, other, travelled)
+    copy = pickle.loads(pickle.dumps(original))
+    assert original.candidates(40, submap, travelled) == [0]
+    assert copy.candidates(40, submap, travelled) == [0]
