@@ -45,6 +45,7 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from pipelines.bench.common import default_out_dir, parse_int_list, parse_list, write_csv  # noqa: E402
+from sandro_core.geometry import rotation_angle
 from sandro_slam.config import GraphConfig  # noqa: E402
 from sandro_slam.robust_backend import robust_optimize  # noqa: E402
 
@@ -279,7 +280,7 @@ def compare(values: gtsam.Values, problem: Problem, ref: Reference) -> dict[str,
     T = pose_matrices(values, problem.keys, problem.is3d)
     translation = np.linalg.norm(T[:, :3, 3] - ref.T[:, :3, 3], axis=1)
     R = np.einsum("nji,njk->nik", T[:, :3, :3], ref.T[:, :3, :3])
-    angles = np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+    angles = rotation_angle(R)
     clean, _ = build_graph(problem, [])
     cost = clean.error(values)
     rmse = float(np.sqrt(np.mean(translation**2)))

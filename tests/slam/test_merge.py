@@ -8,6 +8,7 @@ import pytest
 from pipelines.io.merge_results import merge_summary
 from pipelines.simulation import CityLayout, SpinningLidar, build_city
 from pipelines.simulation.trajectory import Route, Trajectory
+from sandro_core.geometry import rotation_angle
 from sandro_slam import Session, SlamConfig, merge_sessions
 from sandro_slam.factors import odometry_covariance
 from sandro_slam.merge.free_space import free_space_conflict, free_voxels
@@ -67,7 +68,7 @@ def test_two_overlapping_sessions_merge(overlapping):
     assert result.ok and result.joined == ["a", "b"]
     T = result.T_merged_session["b"]
     assert np.linalg.norm(T[:3, 3] - T_a_b[:3, 3]) < 0.2
-    assert np.degrees(np.arccos(np.clip((np.trace(T[:3, :3].T @ T_a_b[:3, :3]) - 1) / 2, -1, 1))) < 1.0
+    assert np.degrees(rotation_angle(T[:3, :3].T @ T_a_b[:3, :3])) < 1.0
     assert sum(loop.weight >= 0.5 for loop in result.loops) >= 3
     conflicts = [loop.conflict for loop in result.loops if not np.isnan(loop.conflict)]
     assert len(conflicts) >= 3 and np.median(conflicts) < SlamConfig().merge.max_free_space_conflict / 2
