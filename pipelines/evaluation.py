@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sandro_core.geometry import rigid_fit, rotation_angle
+from sandro_core.geometry import interpolate_poses, rigid_fit, rotation_angle
 from sandro_slam import SlamResult
 
 
@@ -44,37 +44,30 @@ def rpe(estimate: np.ndarray, reference: np.ndarray, delta: int = 10) -> float:
     return float(np.sqrt(np.mean(np.square(errors))))
 
 
-def interpolate_poses(
-    times: np.ndarray, poses: np.ndarray, at: np.ndarray, max_gap: float = 0.2
+def revisit_errors(
+    estimate: np.ndarray, truth: np.ndarray, radius: float = 5.0, min_travel: float = 50.0
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Poses of a timed trajectory at other times: linear in position, spherical-linear in rotation.
+    """How well a trajectory joins where it returns: for every pose i within `radius` [m] (true positions) of an
+    earlier pose at least `min_travel` [m] of travel back, the error of its pose relative to the nearest such
+    pose j, est(j)^-1 est(i) against true(j)^-1 true(i). Returns (indices i, (K, 2) [translation m, rotation deg]).
+    An odometry that drifts leaves a gap there; loop closure should close it, and must not open one."""
+    from scipy.spatial import cKDTree
 
-    Args:
-        times: (M,) [s] of `poses` (M, 4, 4); sorted here if they are not.
-        at: (N,) [s] the times wanted.
-        max_gap: [s] a time is matched only where the two samples around it are at most this far apart.
-
-    Returns:
-        (mask (N,) of the times matched, (K, 4, 4) poses at `at[mask]`).
-    """
-    from scipy.spatial.transform import Rotation, Slerp
-
-    order = np.argsort(times, kind="stable")
-    times, poses = np.asarray(times)[order], np.asarray(poses)[order]
-    if len(times) < 2:
-        return np.zeros(len(at), dtype=bool), np.empty((0, 4, 4))
-    upper = np.clip(np.searchsorted(times, at, side="left"), 1, len(times) - 1)
-    inside = (at >= times[0]) & (at <= times[-1])
-    mask = inside & (times[upper] - times[upper - 1] <= max_gap)
-    wanted = at[mask]
-    out = np.tile(np.eye(4), (len(wanted), 1, 1))
-    if len(wanted):
-        lo, hi = upper[mask] - 1, upper[mask]
-        span = times[hi] - times[lo]
-        s = np.divide(wanted - times[lo], span, out=np.zeros_like(wanted), where=span > 0)
-        out[:, :3, 3] = (1 - s)[:, None] * poses[lo, :3, 3] + s[:, None] * poses[hi, :3, 3]
-        out[:, :3, :3] = Slerp(times, Rotation.from_matrix(poses[:, :3, :3]))(wanted).as_matrix()
-    return mask, out
+    positions = truth[:, :3, 3]
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
+    tree = cKDTree(positions)
+    indices, errors = [], []
+    for i in range(len(truth)):
+        near = [j for j in tree.query_ball_point(positions[i], radius) if travelled[i] - travelled[j] >= min_travel]
+        if not near:
+            continue
+        j = min(near, key=lambda k: np.linalg.norm(positions[k] - positions[i]))
+        rotation, translation = pose_errors(
+            np.linalg.inv(estimate[j]) @ estimate[i], np.linalg.inv(truth[j]) @ truth[i]
+        )
+        indices.append(i)
+        errors.append((translation, rotation))
+    return np.array(indices, dtype=int), np.array(errors).reshape(-1, 2)
 
 
 def match_ground_truth(

@@ -1,4 +1,4 @@
-"""One sandro-slam run: a bag streamed through OfflineSlam into a new results folder (`io.slam_results`)."""
+"""One sandro-slam run: an input streamed through OfflineSlam into a new results folder (`io.slam_results`)."""
 
 from __future__ import annotations
 
@@ -10,47 +10,54 @@ from collections import Counter
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-import numpy as np
-
 from pipelines.evaluation import evaluate, match_ground_truth
 from pipelines.io.atomic import link_latest, new_run_folder
-from pipelines.io.bags import BagScans
+from pipelines.io.inputs import Poses, open_input
 from pipelines.io.slam_results import write_results
-from sandro_slam import OfflineSlam, SlamConfig, SlamResult
+from sandro_slam import GivenPoses, OfflineSlam, SlamConfig, SlamResult
 
 GT_MAX_GAP = 0.25  # [s] ground-truth samples farther apart than this are not interpolated between
 
 
-def run_bag(
-    bag: Path,
+def run_input(
+    path: Path,
     out: Path,
     config: SlamConfig,
+    fmt: str | None = None,
     topic: str | None = None,
-    ground_truth: tuple[np.ndarray | None, np.ndarray] | None = None,
+    rate: float | None = None,
+    ground_truth: Poses | None = None,
+    odometry: Poses | None = None,
     max_frames: int | None = None,
     map_voxel: float = 0.2,
     progress: bool = False,
 ) -> tuple[Path, dict]:
-    """Run the pipeline over a bag and write a new results folder under `out`; returns it and the metrics.
+    """Run the pipeline over an input (`io.inputs.open_input(path, fmt, topic, rate)`) and write a new results
+    folder under `out`; returns it and the metrics.
 
-    `ground_truth`: (times or None, poses) as `io.trajectory.read_trajectory` returns them. While it runs, the
-    first Ctrl-C stops reading the bag (what was read is still optimised and written), the second raises
-    KeyboardInterrupt.
+    `ground_truth` and `odometry`: (times or None, poses) as `io.trajectory.read_trajectory` returns them; None takes
+    what came with the input (a KITTI sequence's poses.txt, a keyframe dump's poses), if anything. With odometry its
+    poses replace KISS-ICP's (matched to the scans by time, or one per scan in order). While it runs, the first
+    Ctrl-C stops reading (what was read is still optimised and written), the second raises KeyboardInterrupt.
 
     Raises:
-        BagError: the bag cannot be read (before anything is written).
+        ValueError (BagError for bags): the input cannot be read, or the odometry does not fit it (before anything
+            is written); the ground truth covers fewer than 3 scans (nothing is written).
         OSError: `out` is not writable.
-        ValueError: the ground truth covers fewer than 3 scans (nothing is written).
     """
-    with BagScans(bag, topic) as scans:
+    with open_input(path, fmt, topic, rate) as source:
+        ground_truth = ground_truth if ground_truth is not None else source.ground_truth
+        given = _given_poses(odometry if odometry is not None else source.odometry, len(source.scans))
+        for note in source.notes:
+            print(f"sandro-slam: {note}", file=sys.stderr, flush=True)
         try:
             folder = new_run_folder(out)
         except OSError as error:
             raise OSError(f"cannot write results under {out}: {error.strerror or error}") from None
-        total = len(scans) if max_frames is None else min(len(scans), max_frames)
+        total = len(source.scans) if max_frames is None else min(len(source.scans), max_frames)
         reading = _Clock()
         stop = _StopRequest()
-        frames = _timed(itertools.islice(scans, total), reading)
+        frames = _timed(itertools.islice(source.scans, total), reading)
         if progress:
             from tqdm import tqdm
 
@@ -58,10 +65,10 @@ def run_bag(
         start = time.perf_counter()
         try:
             with stop:
-                result = OfflineSlam(config).run(stop.until_requested(frames))
+                result = OfflineSlam(config).run(stop.until_requested(frames), odometry=given)
             wall = time.perf_counter() - start
             metrics = {
-                "bag": str(bag), "topic": scans.topic, "messages": len(scans), "interrupted": stop.requested,
+                **source.description, "odometry": "given" if given else "kiss-icp", "interrupted": stop.requested,
                 **run_metrics(result, wall, reading.seconds),
             }  # fmt: skip
             truth = None
@@ -76,8 +83,18 @@ def run_bag(
     return folder, metrics
 
 
+def _given_poses(odometry: Poses | None, scans: int) -> GivenPoses | None:
+    """The odometry as GivenPoses; ValueError when, one pose per scan, their counts differ."""
+    if odometry is None:
+        return None
+    times, poses = odometry
+    if times is None and len(poses) != scans:
+        raise ValueError(f"the odometry has {len(poses)} poses for {scans} scans (one per scan, or give times: TUM)")
+    return GivenPoses(poses, times)
+
+
 def run_metrics(result: SlamResult, wall: float, read_seconds: float) -> dict:
-    """Counts and speed of a run: frames, keyframes, loops, frames/s, real-time factor and timings [s]."""
+    """Counts and speed of a run: frames, keyframes, loops, frames/s, real-time factor, reading and stage times [s]."""
     frames = len(result.timestamps)
     span = float(result.timestamps[-1] - result.timestamps[0]) if frames > 1 else 0.0
     accepted = sum(loop.weight >= 0.5 for loop in result.loops)
@@ -89,10 +106,11 @@ def run_metrics(result: SlamResult, wall: float, read_seconds: float) -> dict:
         "loops_accepted": accepted,
         "loops_rejected": len(result.loops) - accepted,
         "loops_found_by": dict(Counter(loop.found_by for loop in result.loops)),
+        "odometry_noise_scale": result.odometry_noise_scale,
         "wall_s": wall,
         "frames_per_s": frames / wall if wall > 0 else float("nan"),
         "realtime_factor": span / wall if wall > 0 else float("nan"),
-        "bag_read_s": read_seconds,
+        "read_s": read_seconds,
         "timings_s": result.timings,
     }
 

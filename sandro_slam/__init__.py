@@ -2,12 +2,16 @@
 
 from sandro_slam.config import SlamConfig
 from sandro_slam.merge import MergeResult, merge_sessions
-from sandro_slam.module import LoopClosure, LoopClosureModule
+from sandro_slam.module import LoopCloser, LoopClosure, LoopClosureModule
+from sandro_slam.odometry import GivenPoses
 from sandro_slam.offline import OfflineSlam, SlamResult
+from sandro_slam.robust_backend import check_loops
 from sandro_slam.scan import Scan
 from sandro_slam.session import Session
 
 __all__ = [
+    "GivenPoses",
+    "LoopCloser",
     "LoopClosure",
     "LoopClosureModule",
     "MergeResult",
@@ -16,5 +20,6 @@ __all__ = [
     "Session",
     "SlamConfig",
     "SlamResult",
+    "check_loops",
     "merge_sessions",
 ]

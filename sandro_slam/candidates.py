@@ -32,7 +32,9 @@ class PlaceRecognition:
     def __init__(self, config: LoopDetectionConfig):
         self.config = config
         self._closures = None  # MapClosures, made on first use
-        self._seen: dict[int, np.ndarray] = {}  # the submaps it saw, by key: references, not copies
+        self._seen: dict[int, tuple[int, np.ndarray]] = {}  # the submaps it saw by key, with their MapClosures id
+        # (references, not copies)
+        self._key_of_id: dict[int, int] = {}
         self._last_seen: float | None = None  # path length [m] at the last keyframe MapClosures saw
 
     def __getstate__(self) -> dict:
@@ -43,15 +45,21 @@ class PlaceRecognition:
         """Add keyframe `key`'s submap (keyframe frame) and return earlier keyframes that look like it,
         best first, skipping the last `exclude_recent` metres. A keyframe less than `map_closures_spacing` metres
         along the path from the last one added is neither added nor matched: at the defaults every other
-        keyframe, whose 60 m wide density maps still overlap by three quarters."""
+        keyframe, whose 60 m wide density maps still overlap by three quarters. `travelled` holds the path length
+        at every keyframe added so far, in the order they were added."""
         if self._last_seen is not None and travelled[key] - self._last_seen < self.config.map_closures_spacing:
             return []
         self._last_seen = travelled[key]
         detector = self._detector()
-        self._seen[key] = points
+        # MapClosures takes a C int as a map's id, and keys may be any 64-bit gtsam key: the id is the keyframe's
+        # position in the order of `travelled` (the key itself when keys count keyframes from 0).
+        map_id = len(travelled) - 1 if next(reversed(travelled)) == key else list(travelled).index(key)
+        self._seen[key] = (map_id, points)
+        self._key_of_id[map_id] = key
         found = []
-        for closure in detector.get_closures(key, self._density_map_points(points)):
-            other = closure.target_id if closure.source_id == key else closure.source_id
+        for closure in detector.get_closures(map_id, self._density_map_points(points)):
+            other_id = closure.target_id if closure.source_id == map_id else closure.source_id
+            other = self._key_of_id.get(other_id, key)
             if other == key or other not in travelled or travelled[key] - travelled[other] < self.config.exclude_recent:
                 continue
             if closure.number_of_inliers >= self.config.map_closures_min_inliers:
@@ -65,8 +73,8 @@ class PlaceRecognition:
             from map_closures.map_closures import MapClosures
 
             self._closures = MapClosures(MapClosuresConfig(inliers_threshold=self.config.map_closures_min_inliers))
-            for key, points in self._seen.items():
-                self._closures.get_closures(key, self._density_map_points(points))
+            for map_id, points in self._seen.values():
+                self._closures.get_closures(map_id, self._density_map_points(points))
         return self._closures
 
     def _density_map_points(self, points: np.ndarray) -> np.ndarray:

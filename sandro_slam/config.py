@@ -76,6 +76,11 @@ class GraphConfig(StrictModel):
         "variance factor of the loops the first keeps, taken when it keeps most of them and fits them clearly "
         "better (for covariances not to scale)",
     )
+    estimate_odometry_noise: Literal["never", "given_odometry", "always"] = Field(
+        "given_odometry",
+        description="when to scale the odometry covariances to fit the loops (variance component estimation): for "
+        "the poses of another front end, whose quality the model below cannot know (docs/back-end.md)",
+    )
     prior_sigma: float = Field(1e-3, gt=0.0, description="std of the first pose, rad and m")
     odometry_translation_sigma_per_m: float = Field(0.01, gt=0.0, description="[m] per m travelled")
     odometry_rotation_sigma_per_m: float = Field(0.001, gt=0.0, description="[rad] per m travelled")

@@ -20,6 +20,12 @@ def gaussian_noise(factor: gtsam.NoiseModelFactor) -> gtsam.noiseModel.Base:
     return model.noise() if isinstance(model, gtsam.noiseModel.Robust) else model
 
 
+def scaled_noise(factor: gtsam.BetweenFactorPose3, scale: float) -> gtsam.BetweenFactorPose3:
+    """The same factor with its (Gaussian) covariance times `scale`."""
+    covariance = np.asarray(gaussian_noise(factor).covariance()) * scale
+    return between_factor(factor.keys()[0], factor.keys()[1], factor.measured().matrix(), covariance)
+
+
 def odometry_covariance(distance: float, config: GraphConfig) -> np.ndarray:
     """6x6 covariance of an odometry factor over `distance` metres: std growing linearly with travel."""
     rot = config.odometry_rotation_sigma_per_m * distance + config.odometry_sigma_floor

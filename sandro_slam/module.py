@@ -1,4 +1,5 @@
-"""LoopClosureModule: the piece another mapping pipeline embeds."""
+"""The pieces another mapping pipeline embeds: `LoopCloser`, which proposes verified loops for a graph the host owns,
+and `LoopClosureModule`, which also keeps the pose graph itself."""
 
 from __future__ import annotations
 
@@ -9,15 +10,16 @@ import numpy as np
 
 from sandro_slam.candidates import PlaceRecognition, radius_candidates
 from sandro_slam.config import SlamConfig
-from sandro_slam.factors import odometry_covariance
+from sandro_slam.factors import between_factor, odometry_covariance
 from sandro_slam.loop_registration import SubmapDescription, describe_submap, register_submaps
 from sandro_slam.pose_graph import LoopFactor, PoseGraph
+
+MIN_SUBMAP_POINTS = 10  # a keyframe with fewer points takes no part in loop closure
 
 
 @dataclass
 class LoopClosure:
-    """A verified loop closure, as added to the graph: points of `source_key`'s submap map into
-    `target_key`'s frame by T_target_source."""
+    """A verified loop closure: points of `source_key`'s submap map into `target_key`'s frame by T_target_source."""
 
     source_key: int
     target_key: int
@@ -27,28 +29,127 @@ class LoopClosure:
     overlap: float  # share of source submap points near the target submap after alignment
     found_by: str  # "radius", "place_recognition" or "radius+place_recognition"
     time_s: float  # registration and verification time
-    factor: LoopFactor
+    factor: LoopFactor | None = None  # its factor in a LoopClosureModule's graph (None for a LoopCloser's loops)
 
     @property
     def weight(self) -> float:
-        """The robust back end's weight after the last optimisation (below 0.5: rejected)."""
-        return self.factor.weight
+        """The robust back end's weight after the last optimisation (below 0.5: rejected; nan: in no graph)."""
+        return float("nan") if self.factor is None else self.factor.weight
+
+    def between_factor(self, kernel: gtsam.noiseModel.mEstimator.Base | None = None) -> gtsam.BetweenFactorPose3:
+        """The loop as a factor for any gtsam graph whose keys are the keyframe keys: BetweenFactorPose3(target_key,
+        source_key, T_target_source) with the registration's covariance, wrapped in the robust `kernel` if given."""
+        factor = between_factor(self.target_key, self.source_key, self.T_target_source, self.covariance)
+        if kernel is None:
+            return factor
+        robust = gtsam.noiseModel.Robust.Create(kernel, factor.noiseModel())
+        return gtsam.BetweenFactorPose3(self.target_key, self.source_key, factor.measured(), robust)
 
 
-class LoopClosureModule:
-    """Stores keyframe submaps, finds loop candidates, registers them with SANDRO, verifies them and adds
-    them to a gtsam pose graph as BetweenFactorPose3 with the covariance from SANDRO's final weights."""
+class LoopCloser:
+    """Finds loop candidates between keyframes, registers each pair with SANDRO and verifies it; owns no graph.
+
+    The host adds its keyframes (its own keys, its current pose estimates, the submaps) and gets back verified
+    loops, each ready to add to its own graph with `LoopClosure.between_factor`. After the host optimises, it hands
+    its new estimates back with `update_estimates`: they steer the search for candidates nearby.
+    """
 
     def __init__(self, config: SlamConfig | None = None):
         self.config = config or SlamConfig()
-        self.pose_graph = PoseGraph(self.config.graph)
-        self.loops: list[LoopClosure] = []
         self.attempts = 0  # candidate pairs registered
         self._submaps: dict[int, np.ndarray] = {}  # keyframe submaps (points in the keyframe frame) by key
         self._descriptions: dict[int, SubmapDescription] = {}  # of the submaps, made once each
-        self._travelled: dict[int, float] = {}
+        self._estimates: dict[int, np.ndarray] = {}  # current T_world_keyframe by key
+        self._travelled: dict[int, float] = {}  # path length [m] at each keyframe
         self._last_key: int | None = None
         self._place_recognition = PlaceRecognition(self.config.loops) if self.config.loops.use_map_closures else None
+
+    def add_keyframe(
+        self, key: int, T_world_keyframe: np.ndarray, points: np.ndarray, distance: float | None = None
+    ) -> list[LoopClosure]:
+        """Add a keyframe at its current estimate T_world_keyframe with its submap (points in the keyframe frame,
+        [m]); returns the loops it closes with earlier keyframes, verified. `distance`: the path length [m] from the
+        previous keyframe (None: the distance between the two estimates).
+
+        Raises:
+            ValueError: points that are not an (N, 3) array, or a key added before.
+        """
+        points = np.asarray(points, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise ValueError(f"keyframe {key}: points must be an (N, 3) array, got shape {points.shape}")
+        if key in self._travelled:
+            raise ValueError(f"keyframe {key} was added before")
+        finite = np.all(np.isfinite(points), axis=1)
+        points = points if finite.all() else points[finite]
+        previous = self._last_key
+        if distance is None:
+            distance = (
+                0.0
+                if previous is None
+                else float(np.linalg.norm(T_world_keyframe[:3, 3] - self._estimates[previous][:3, 3]))
+            )
+        self._travelled[key] = 0.0 if previous is None else self._travelled[previous] + distance
+        self._estimates[key] = np.asarray(T_world_keyframe, dtype=np.float64)
+        self._last_key = key
+        if len(points) < MIN_SUBMAP_POINTS:
+            return []
+        self._submaps[key] = points
+        return self._close_loops(key, points)
+
+    @property
+    def keys(self) -> list[int]:
+        """Keys of the keyframes that take part in loop closure (those with a submap)."""
+        return list(self._submaps)
+
+    def update_estimates(self, T_world_keyframes: dict[int, np.ndarray]) -> None:
+        """The host's current estimates of (some of) its keyframes, e.g. after an optimisation."""
+        for key, T in T_world_keyframes.items():
+            if key in self._estimates:
+                self._estimates[key] = np.asarray(T, dtype=np.float64)
+
+    def __getstate__(self) -> dict:
+        # Descriptions hold Open3D clouds, which do not pickle: `_description` makes them again from the submaps.
+        return {**self.__dict__, "_descriptions": {}}
+
+    def _close_loops(self, key: int, points: np.ndarray) -> list[LoopClosure]:
+        found: dict[int, list[str]] = {}
+        positions = {k: self._estimates[k][:3, 3] for k in self._submaps}
+        for other in radius_candidates(key, positions, self._travelled, self.config.loops):
+            found.setdefault(other, []).append("radius")
+        if self._place_recognition is not None:
+            for other in self._place_recognition.candidates(key, points, self._travelled):
+                if other in self._submaps:
+                    found.setdefault(other, []).append("place_recognition")
+        closed = []
+        for other, sources in found.items():
+            if len(closed) >= self.config.loops.max_loops_per_keyframe:
+                break
+            self.attempts += 1
+            pair = register_submaps(self._description(other), self._description(key), self.config.registration)
+            if pair.accepted:
+                closed.append(LoopClosure(key, other, pair.T_target_source, pair.covariance, pair.inliers,
+                                          pair.overlap, "+".join(sources), pair.time_s))  # fmt: skip
+        return closed
+
+    def _description(self, key: int) -> SubmapDescription:
+        description = self._descriptions.get(key)
+        if description is None:
+            description = self._descriptions[key] = describe_submap(self._submaps[key], self.config.registration)
+        return description
+
+
+class LoopClosureModule:
+    """A LoopCloser with a pose graph of its own: each keyframe enters the graph with an odometry factor, each
+    verified loop as a BetweenFactorPose3 with the covariance from SANDRO's final weights, and the robust back end
+    decides which loops to keep."""
+
+    def __init__(self, config: SlamConfig | None = None):
+        self.config = config or SlamConfig()
+        self.closer = LoopCloser(self.config)
+        self.pose_graph = PoseGraph(self.config.graph)
+        self.loops: list[LoopClosure] = []
+        self.estimate_odometry_noise = self.config.graph.estimate_odometry_noise == "always"  # OfflineSlam sets it
+        self._last_key: int | None = None
 
     @property
     def graph(self) -> gtsam.NonlinearFactorGraph:
@@ -60,6 +161,11 @@ class LoopClosureModule:
         """Initial values: the keyframe poses from odometry."""
         return self.pose_graph.values
 
+    @property
+    def attempts(self) -> int:
+        """Candidate pairs registered."""
+        return self.closer.attempts
+
     def add_keyframe(
         self, key: int, T_world_keyframe: np.ndarray, points: np.ndarray, odometry_covariance_: np.ndarray | None = None
     ) -> list[LoopClosure]:
@@ -68,15 +174,10 @@ class LoopClosureModule:
         The odometry factor links it to the previously added keyframe, with `odometry_covariance_` (6x6,
         gtsam order) or one that grows with the distance travelled. Returns the loops it closed.
         """
-        points = np.asarray(points, dtype=np.float64)
-        if points.ndim != 2 or points.shape[1] != 3:
-            raise ValueError(f"keyframe {key}: points must be an (N, 3) array, got shape {points.shape}")
-        finite = np.all(np.isfinite(points), axis=1)
-        points = points if finite.all() else points[finite]
         previous = self._last_key
+        distance = None
         if previous is None:
             self.pose_graph.add_pose(key, T_world_keyframe)
-            self._travelled[key] = 0.0
         else:
             distance = float(np.linalg.norm(T_world_keyframe[:3, 3] - self.values.atPose3(previous).translation()))
             covariance = (
@@ -85,43 +186,13 @@ class LoopClosureModule:
                 else odometry_covariance_
             )
             self.pose_graph.add_pose(key, T_world_keyframe, previous, covariance)
-            self._travelled[key] = self._travelled[previous] + distance
         self._last_key = key
-        if len(points) < 10:
-            return []
-        self._submaps[key] = points
-
-        found: dict[int, list[str]] = {}
-        positions = {k: self.pose_graph.estimate(k)[:3, 3] for k in self._submaps}
-        for other in radius_candidates(key, positions, self._travelled, self.config.loops):
-            found.setdefault(other, []).append("radius")
-        if self._place_recognition is not None:
-            for other in self._place_recognition.candidates(key, points, self._travelled):
-                if other in self._submaps:
-                    found.setdefault(other, []).append("place_recognition")
-
-        closed = []
-        for other, sources in found.items():
-            if len(closed) >= self.config.loops.max_loops_per_keyframe:
-                break
-            self.attempts += 1
-            pair = register_submaps(self._description(other), self._description(key), self.config.registration)
-            if not pair.accepted:
-                continue
-            factor = self.pose_graph.add_loop(other, key, pair.T_target_source, pair.covariance)
-            closed.append(
-                LoopClosure(
-                    key,
-                    other,
-                    pair.T_target_source,
-                    pair.covariance,
-                    pair.inliers,
-                    pair.overlap,
-                    "+".join(sources),
-                    pair.time_s,
-                    factor,
-                )
-            )
+        # Candidates are searched in the graph's current estimate, which the loops found so far have corrected.
+        self.closer.update_estimates({k: self.pose_graph.estimate(k) for k in self.closer.keys})
+        closed = self.closer.add_keyframe(key, self.pose_graph.estimate(key), points, distance)
+        for loop in closed:
+            loop.factor = self.pose_graph.add_loop(loop.target_key, loop.source_key, loop.T_target_source,
+                                                   loop.covariance)  # fmt: skip
         if closed:
             self.loops.extend(closed)
             # The estimate steers the candidate search of the keyframes to come: re-optimise when a new loop
@@ -131,19 +202,10 @@ class LoopClosureModule:
         return closed
 
     def optimize(self) -> dict[int, np.ndarray]:
-        """Robustly optimise the graph; T_world_keyframe per key."""
-        return self.pose_graph.optimize()
+        """Robustly optimise the graph (then, with `estimate_odometry_noise`, the odometry covariances scaled to fit
+        the loops kept); T_world_keyframe per key."""
+        return self.pose_graph.optimize(self.estimate_odometry_noise)
 
     def rejected_loops(self) -> list[LoopClosure]:
         """Verified loops that the robust back end rejected in the last optimisation."""
         return [loop for loop in self.loops if loop.weight < 0.5]
-
-    def __getstate__(self) -> dict:
-        # Descriptions hold Open3D clouds, which do not pickle: `_description` makes them again from the submaps.
-        return {**self.__dict__, "_descriptions": {}}
-
-    def _description(self, key: int) -> SubmapDescription:
-        description = self._descriptions.get(key)
-        if description is None:
-            description = self._descriptions[key] = describe_submap(self._submaps[key], self.config.registration)
-        return description

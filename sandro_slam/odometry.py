@@ -1,12 +1,26 @@
-"""KISS-ICP odometry as the SLAM front end uses it, and the re-registration of a run's first scans."""
+"""Odometry for the SLAM front end: KISS-ICP over the scans, or the poses of another front end.
+
+Both give, scan by scan, what the keyframes are built from: (stamp [s] the pose refers to, T_world_sensor, the
+scan's points in the sensor frame at that pose, voxelised no coarser than the submaps).
+"""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from kiss_icp.kiss_icp import KissICP
 from kiss_icp.mapping import get_voxel_hash_map
+from scipy.spatial.transform import Rotation, Slerp
 
 from sandro_core.geometry import transform_points
+from sandro_slam.config import SlamConfig
+from sandro_slam.keyframes import voxel_downsample
+from sandro_slam.scan import Scan
+
+OdometryPose = tuple[float, np.ndarray, np.ndarray]  # (stamp [s], T_world_sensor, points in the sensor frame)
+MAX_HELD_SCANS = 300  # a start that stands still longer (30 s at 10 Hz) is not held back any further
 
 
 class ScanOdometry(KissICP):
@@ -16,6 +30,116 @@ class ScanOdometry(KissICP):
     def voxelize(self, iframe: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         source, self.map_points = super().voxelize(iframe)
         return source, self.map_points
+
+
+class KissIcpOdometry:
+    """KISS-ICP over the scans (deskewed with their per-point times when they have them). The scans of the first
+    two keyframe distances are held back until the start is re-registered (`reregister_start`); later poses get
+    the same correction."""
+
+    def __init__(self, config: SlamConfig):
+        self.config = config
+        self.kiss_icp = ScanOdometry(config.odometry)
+        # The scan as the submaps take it: KISS-ICP's own voxelisation when that is fine enough.
+        self._own_scan = config.keyframes.submap_voxel >= 0.5 * config.odometry.mapping.voxel_size
+        self._held: list[OdometryPose] = []
+        self._correction: np.ndarray | None = None  # KISS-ICP's frame -> the re-registered start's, once known
+        self.unmatched: list[int] = []  # scans without a pose: none, KISS-ICP gives every scan one
+
+    def add(self, scan: Scan) -> list[OdometryPose]:
+        """Register a scan with finite points; the poses that are final now (none while the start is held)."""
+        deskewed, _ = self.kiss_icp.register_frame(scan.points, scan.times)
+        pose = self.kiss_icp.last_pose.copy()
+        deskews = len(scan.times) > 0 and self.config.odometry.data.deskew
+        stamp = scan.timestamp + (float(scan.times.max()) if deskews else 0.0)  # KISS-ICP deskews to the last point
+        voxel = self.config.keyframes.submap_voxel
+        points = self.kiss_icp.map_points if self._own_scan else voxel_downsample(deskewed, voxel)
+        if self._correction is not None:
+            return [(stamp, self._correction @ pose, points)]
+        self._held.append((stamp, pose, points))
+        held_poses = np.array([held[1] for held in self._held])
+        if len(self._held) >= MAX_HELD_SCANS or path_length(held_poses)[-1] >= 2.0 * self.config.keyframes.distance:
+            return self._release_start()
+        return []
+
+    def finish(self) -> list[OdometryPose]:
+        """The poses of a start still held."""
+        return self._release_start() if self._correction is None and self._held else []
+
+    def _release_start(self) -> list[OdometryPose]:
+        stamps, poses, scans = zip(*self._held)
+        fixed = reregister_start(self.kiss_icp, np.asarray(poses), list(scans), self.config.keyframes.distance)
+        self._correction = fixed[-1] @ np.linalg.inv(poses[-1])
+        self._held = []
+        return list(zip(stamps, fixed, scans))
+
+
+@dataclass(frozen=True)
+class GivenPoses:
+    """Odometry from another front end (FAST-LIO2, LIO-SAM, a wheel-inertial filter): T_world_sensor (N, 4, 4)
+    of the scans in order (`times` None), or at `times` (N,) [s], interpolated at each scan's stamp. Its scans are
+    taken as deskewed already: each scan's points in the sensor frame at its pose."""
+
+    poses: np.ndarray
+    times: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        poses = np.asarray(self.poses, dtype=np.float64)
+        if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) == 0:
+            raise ValueError(f"odometry poses must be a non-empty (N, 4, 4) array, got shape {poses.shape}")
+        object.__setattr__(self, "poses", poses)
+        if self.times is not None:
+            times = np.asarray(self.times, dtype=np.float64).ravel()
+            if len(times) != len(poses):
+                raise ValueError(f"{len(times)} odometry times for {len(poses)} poses")
+            if np.any(np.diff(times) <= 0.0):
+                raise ValueError("odometry times must increase")
+            object.__setattr__(self, "times", times)
+
+    def at(self, index: int, stamp: float) -> np.ndarray | None:
+        """The pose of the scan `index` taken at `stamp` [s]; None outside the odometry's time span.
+
+        Raises:
+            ValueError: poses in order, fewer than the scans.
+        """
+        if self.times is None:
+            if index >= len(self.poses):
+                raise ValueError(f"scan {index}: the odometry has only {len(self.poses)} poses, one per scan needed")
+            return self.poses[index]
+        if not self.times[0] <= stamp <= self.times[-1]:
+            return None
+        upper = int(np.clip(np.searchsorted(self.times, stamp), 1, len(self.times) - 1))
+        s = (stamp - self.times[upper - 1]) / (self.times[upper] - self.times[upper - 1])
+        pose = np.eye(4)
+        pose[:3, :3] = self._rotations(stamp).as_matrix()
+        pose[:3, 3] = (1.0 - s) * self.poses[upper - 1, :3, 3] + s * self.poses[upper, :3, 3]
+        return pose
+
+    @cached_property
+    def _rotations(self) -> Slerp:
+        return Slerp(self.times, Rotation.from_matrix(self.poses[:, :3, :3]))
+
+
+class GivenOdometry:
+    """`GivenPoses` as the front end's odometry. Scans without a pose are not used; `unmatched` lists their indices
+    (in the order they were added)."""
+
+    def __init__(self, given: GivenPoses, submap_voxel: float):
+        self.given = given
+        self.submap_voxel = submap_voxel
+        self.unmatched: list[int] = []
+        self._index = 0
+
+    def add(self, scan: Scan) -> list[OdometryPose]:
+        index, self._index = self._index, self._index + 1
+        pose = self.given.at(index, scan.timestamp)
+        if pose is None:
+            self.unmatched.append(index)
+            return []
+        return [(scan.timestamp, pose, voxel_downsample(scan.points, self.submap_voxel))]
+
+    def finish(self) -> list[OdometryPose]:
+        return []
 
 
 def path_length(poses: np.ndarray) -> np.ndarray:

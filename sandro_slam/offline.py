@@ -15,6 +15,7 @@ from sandro_slam.config import SlamConfig
 from sandro_slam.frontend import Frontend
 from sandro_slam.keyframes import Keyframe
 from sandro_slam.module import LoopClosure, LoopClosureModule
+from sandro_slam.odometry import GivenPoses
 from sandro_slam.scan import Scan, as_scan
 from sandro_slam.timing import Stopwatch
 
@@ -26,7 +27,8 @@ class SlamResult:
     timestamps: np.ndarray  # (F,) [s] the time each pose refers to: stamp + latest per-point time (KISS-ICP
     # deskews to the latest point), the stamp itself for frames without per-point times
     poses: np.ndarray  # (F, 4, 4) optimised: every scan moved with its keyframe
-    odometry_poses: np.ndarray  # (F, 4, 4) KISS-ICP alone, its first scans re-registered (reregister_start)
+    odometry_poses: np.ndarray  # (F, 4, 4) the odometry alone: KISS-ICP's, its first scans re-registered
+    # (reregister_start), or the poses given
     keyframes: list[Keyframe]
     keyframe_of_frame: np.ndarray  # (F,) key of the keyframe each frame belongs to
     graph: gtsam.NonlinearFactorGraph
@@ -34,7 +36,8 @@ class SlamResult:
     keyframe_poses: dict[int, np.ndarray]  # optimised T_world_keyframe
     loops: list[LoopClosure]  # verified loops; `weight` < 0.5 means the back end rejected them
     rejected_loops: list[LoopClosure]
-    skipped_frames: list[int]  # input frames without any finite point
+    skipped_frames: list[int]  # input frames without any finite point, or without a given odometry pose
+    odometry_noise_scale: float  # on the odometry covariances in the final optimisation (1: as configured)
     timings: dict[str, float] = field(default_factory=dict)  # wall seconds: odometry, loop_closure (in this
     # process), optimization (with `loops.in_background`: also the wait for the worker), total; and the
     # worker's loop_closure_worker_cpu (CPU seconds) when it ran
@@ -57,26 +60,37 @@ class OfflineSlam:
         self.config = config or SlamConfig()
         self.module = LoopClosureModule(self.config)
 
-    def run(self, frames: Iterable[Scan | Sequence], progress: bool = False) -> SlamResult:
+    def run(
+        self, frames: Iterable[Scan | Sequence], progress: bool = False, odometry: GivenPoses | None = None
+    ) -> SlamResult:
         """Process scans in order: `Scan`s or tuples (timestamp, points[, per-point times]), points in the sensor
         frame. Frames without a finite point are skipped (`skipped_frames`); other non-finite points are dropped.
+
+        `odometry`: the poses of another front end instead of KISS-ICP (its scans deskewed already); frames it has
+        no pose for are skipped too.
 
         With `loops.in_background` and more than one core, `module` works in a worker process beside the
         odometry (`BackgroundLoopClosure`) and is replaced by what the worker returns, with the same content.
         """
         start = time.perf_counter()
+        policy = self.config.graph.estimate_odometry_noise
+        self.module.estimate_odometry_noise = policy == "always" or (
+            policy == "given_odometry" and odometry is not None
+        )
         in_background = self.config.loops.in_background and usable_cores() > 1
         with BackgroundLoopClosure(self.module) if in_background else nullcontext() as background:
             stopwatch = Stopwatch("odometry", "loop_closure", "optimization")
-            frontend = Frontend(self.config, background or self.module, stopwatch)
-            skipped = []
+            frontend = Frontend(self.config, background or self.module, stopwatch, odometry)
+            skipped, added = [], []  # indices of the input frames
             for index, frame in enumerate(_with_progress(frames, progress)):
                 scan = _finite(as_scan(frame, index))
                 if scan is None:
                     skipped.append(index)
                 else:
+                    added.append(index)
                     frontend.add(scan)
             frontend.finish()
+            skipped = sorted(skipped + [added[i] for i in frontend.unmatched])
             timings = stopwatch.seconds
             with stopwatch("optimization"):
                 if background is None:
@@ -101,6 +115,7 @@ class OfflineSlam:
             loops=list(self.module.loops),
             rejected_loops=self.module.rejected_loops(),
             skipped_frames=skipped,
+            odometry_noise_scale=self.module.pose_graph.odometry_scale,
             timings=timings,
         )
         result.poses = result.frame_poses(keyframe_poses)

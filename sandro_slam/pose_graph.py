@@ -10,6 +10,7 @@ from scipy.stats import chi2
 
 from sandro_slam.config import GraphConfig
 from sandro_slam.factors import between_factor
+from sandro_slam.noise_scale import rescale_odometry
 from sandro_slam.robust_backend import robust_optimize
 
 
@@ -39,6 +40,7 @@ class PoseGraph:
         self.graph = gtsam.NonlinearFactorGraph()
         self.values = gtsam.Values()  # initial values: the odometry chain
         self.loops: list[LoopFactor] = []
+        self.odometry_scale = 1.0  # on the odometry covariances in the last optimisation (noise_scale)
         self._known_inliers: list[int] = []
         self._estimate = gtsam.Values()
         self._isam = gtsam.ISAM2() if config.mode == "incremental" else None
@@ -95,14 +97,20 @@ class PoseGraph:
         self.loops.append(loop)
         return loop
 
-    def optimize(self) -> dict[int, np.ndarray]:
-        """Optimise; returns T_world_keyframe per key and updates each loop's weight."""
+    def optimize(self, estimate_odometry_noise: bool = False) -> dict[int, np.ndarray]:
+        """Optimise; returns T_world_keyframe per key and updates each loop's weight. With
+        `estimate_odometry_noise`, the odometry covariances are then scaled to fit the loops the robust back end kept
+        (`noise_scale.rescale_odometry`; the factor in `odometry_scale`)."""
         if self.values.size() == 0:
             return {}
         if self._isam is not None:
             self._optimize_incremental()
         else:
             self._estimate = self._robust_optimize(self.values)
+        if estimate_odometry_noise:
+            odometry = self._known_inliers[1:]  # the first is the prior
+            kept = [loop.factor_index for loop in self.loops if loop.weight >= 0.5]
+            self._estimate, self.odometry_scale = rescale_odometry(self.graph, self._estimate, odometry, kept)
         return {key: self._estimate.atPose3(key).matrix() for key in self._estimate.keys()}
 
     def update_estimate(self) -> None:

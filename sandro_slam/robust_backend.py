@@ -66,6 +66,24 @@ def robust_optimize(
     return values, weights
 
 
+def check_loops(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, loop_indices: list[int], config: GraphConfig | None = None
+) -> tuple[np.ndarray, gtsam.Values]:
+    """Which loop factors of a graph someone else built to keep: the robust back end (`robust_optimize`) on the whole
+    graph, with every factor but those at `loop_indices` (odometry, IMU, GPS, priors) as a known inlier.
+
+    Returns:
+        (keep: (L,) bool per entry of `loop_indices`, the values optimised with the kept loops).
+    """
+    loop_indices = [int(i) for i in loop_indices]
+    if not loop_indices:
+        return np.zeros(0, dtype=bool), gtsam.LevenbergMarquardtOptimizer(graph, values).optimize()
+    chosen = set(loop_indices)
+    known = [i for i in range(graph.size()) if i not in chosen]
+    optimized, weights = robust_optimize(graph, values, known, config or GraphConfig())
+    return weights[loop_indices] >= 0.5, optimized
+
+
 def _refined(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, weights: np.ndarray) -> gtsam.Values:
     """Levenberg-Marquardt to convergence (`REFINE_RELATIVE_TOL`) on the factors of weight >= 0.5."""
     kept = gtsam.NonlinearFactorGraph()

@@ -1,5 +1,5 @@
 """The bag part of `sandro-bench slam`: the simulated drive written as a bag in each format and run end to end
-through `sandro-slam`'s `run_bag`, and how much faster than real time `BagScans` reads a 64-beam-sized bag."""
+through `sandro-slam`'s `run_input`, and how much faster than real time `BagScans` reads a 64-beam-sized bag."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import numpy as np
 
 from pipelines.io.bags import FORMATS, BagScans, bag_path, delete_bag, write_bag
 from pipelines.io.trajectory import read_trajectory
-from pipelines.simulation.bag import ground_truth_path, simulate_bag
-from pipelines.slam_run import run_bag
+from pipelines.simulation.export import ground_truth_path, simulate
+from pipelines.slam_run import run_input
 from sandro_slam import Scan, SlamConfig
 
 BEAMS, COLUMNS, RATE = 64, 2048, 10.0  # an Ouster OS-64 in 2048 x 10 mode
@@ -75,7 +75,7 @@ def bag_experiment(
     formats: tuple[str, ...] = FORMATS,
     read_scans: int = 100,
 ) -> dict[str, float]:
-    """Per format: write the drive as a bag (in out/bags, removed afterwards), run `run_bag` with the ground
+    """Per format: write the drive as a bag (in out/bags, removed afterwards), run `run_input` with the ground
     truth, and report its ATE before/after loop closure, frames/s and the share of the run spent reading the bag;
     then the reading speed of a 64 x 2048-point, 10 Hz bag of `read_scans` scans as a multiple of real time."""
     metrics: dict[str, float] = {}
@@ -85,8 +85,8 @@ def bag_experiment(
         for fmt in formats:
             bag = bag_path(folder, "drive", fmt)
             print(f"bag {fmt}: simulating, then sandro-slam ...", flush=True)
-            simulate_bag(bag, fmt, seed=seed, laps=laps, frames=frames, overwrite=True)
-            _, run = run_bag(
+            simulate(bag, fmt, seed=seed, laps=laps, frames=frames, overwrite=True)
+            _, run = run_input(
                 bag,
                 out / f"sandro-slam_{fmt}",
                 config,
@@ -96,7 +96,7 @@ def bag_experiment(
             metrics[f"bag_{fmt}_ate_kiss_icp"] = run["ground_truth"]["ate_odometry_m"]
             metrics[f"bag_{fmt}_ate_sandro_slam"] = run["ground_truth"]["ate_slam_m"]
             metrics[f"bag_{fmt}_fps"] = run["frames_per_s"]
-            metrics[f"bag_{fmt}_read_share"] = run["bag_read_s"] / run["wall_s"]
+            metrics[f"bag_{fmt}_read_share"] = run["read_s"] / run["wall_s"]
             delete_bag(bag)  # ~350 MB each
             ground_truth_path(bag).unlink()
         for fmt in formats:

@@ -38,6 +38,7 @@ from kiss_icp.kiss_icp import KissICP
 
 from pipelines.bench.bags import bag_experiment
 from pipelines.bench.common import default_out_dir, write_csv
+from pipelines.bench.given_odometry import given_odometry_experiment
 from pipelines.bench.kiss_slam import kiss_slam_available, run_kiss_slam
 from pipelines.evaluation import align_se3, ate, pose_errors
 from pipelines.io.trajectory import write_tum
@@ -65,6 +66,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-kiss-slam", action="store_true", help="skip the KISS-SLAM baseline")
     parser.add_argument(
         "--repeats", type=int, default=3, help="runs of sandro-slam and KISS-SLAM, in turn; frames/s is their median"
+    )
+    parser.add_argument(
+        "--given-drifts",
+        default="0.5,0.05",
+        help="drifts [%% of the distance] of the given odometry runs, comma list ('' for none; default 0.5,0.05)",
     )
     parser.add_argument(
         "--no-bags",
@@ -128,6 +134,9 @@ def run(args: argparse.Namespace) -> int:
         metrics["fps_kiss_slam_runs"] = fps["kiss_slam"]
         trajectories["KISS-SLAM"] = kiss_poses
     metrics.update(false_loop_experiment(result, truth, config.graph, args.false_loop_ratio, args.seed))
+    drifts = [float(value) / 100.0 for value in args.given_drifts.split(",") if value.strip()]
+    if drifts:
+        metrics.update(given_odometry_experiment(sequence, frames, config, drifts))
     if not args.no_bags:
         del frames  # the bag runs stream their frames
         metrics.update(bag_experiment(out, config, args.seed, args.laps, args.frames))

@@ -37,8 +37,8 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     from pipelines.io.trajectory import read_trajectory
     from pipelines.simulation import VERSION
-    from pipelines.simulation.bag import ground_truth_path, simulate_bag
-    from pipelines.slam_run import run_bag
+    from pipelines.simulation.export import ground_truth_path, simulate
+    from pipelines.slam_run import run_input
     from sandro_slam import SlamConfig
 
     bag = args.cache / f"city_v{VERSION}_seed{args.seed}_{args.frames}scans.bag"
@@ -46,9 +46,9 @@ def _run(args: argparse.Namespace) -> int:
     if not (bag.is_file() and ground_truth_path(bag).is_file()):
         print(f"simulating the demo bag {bag} (once) ...", flush=True)
         args.cache.mkdir(parents=True, exist_ok=True)
-        simulate_bag(bag, "ros1", seed=args.seed, frames=args.frames, overwrite=True, progress=True)
+        simulate(bag, "ros1", seed=args.seed, frames=args.frames, overwrite=True, progress=True)
     print(f"sandro-slam {bag} --gt {ground_truth_path(bag)} --out {args.out}", flush=True)
-    folder, metrics = run_bag(
+    folder, metrics = run_input(
         bag, args.out, config, ground_truth=read_trajectory(ground_truth_path(bag)), progress=True
     )
     print_summary(folder, metrics)

@@ -36,7 +36,7 @@ def _run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from pipelines.evaluation import pose_errors
-    from pipelines.io.pointclouds import load_point_cloud, write_ply
+    from pipelines.io.pointclouds import load_point_cloud, write_point_cloud
     from pipelines.io.trajectory import read_transform
     from pipelines.simulation.correspondences import random_transform
     from sandro_core import SandroConfig, register
@@ -70,7 +70,7 @@ def _run(args: argparse.Namespace) -> int:
     colors[: len(target)] = [0.1, 0.4, 0.9]
     colors[len(target) :] = [0.9, 0.3, 0.1]
     path = args.out / "aligned.ply"
-    write_ply(path, np.vstack([target, transform_points(T, moved)]), colors)
+    write_point_cloud(path, np.vstack([target, transform_points(T, moved)]), colors)
     print(f"aligned clouds (target blue, source orange): {path}")
     return 0 if result.valid and rot_err < 10 and trans_err < 1 else 1
 

@@ -1,8 +1,8 @@
 """`sandro-merge`: join sessions recorded at different times into one map, with no initial alignment.
 
-Sessions are sandro-slam results folders (their session/ subfolder) or bags, which are processed first (into
-OUT/sessions/). The merged frame is the first session's world frame. Writes into OUT (a new or empty folder,
-all or nothing):
+Sessions are sandro-slam results folders (their session/ subfolder) or inputs sandro-slam reads (bags, scan folders,
+KITTI sequences), which are processed first (into OUT/sessions/). The merged frame is the first session's world
+frame. Writes into OUT (a new or empty folder, all or nothing):
     transforms.yaml                 per session: T_merged_session (4x4) and the 6x6 covariance of its first
                                     keyframe's pose (gtsam order [rotation, translation], keyframe frame)
     map.ply                         the keyframe submaps at their merged poses, voxelised, coloured by session
@@ -32,7 +32,11 @@ def build_parser() -> argparse.ArgumentParser:
     """The command-line interface of `sandro-merge`."""
     parser = Parser(prog="sandro-merge", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument(
-        "sessions", type=Path, nargs="+", metavar="SESSION", help="sandro-slam results folder or bag (at least two)"
+        "sessions",
+        type=Path,
+        nargs="+",
+        metavar="SESSION",
+        help="sandro-slam results folder, or an input sandro-slam reads (at least two)",
     )
     parser.add_argument("--out", type=Path, required=True, help="output folder (new or empty)")
     parser.add_argument("--config", type=Path, help="SlamConfig YAML (its merge section; default: built-in values)")
@@ -69,20 +73,32 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _is_bag(path: Path) -> bool:
-    return (path.is_file() and path.suffix in BAG_SUFFIXES) or (path.is_dir() and (path / "metadata.yaml").is_file())
+def _is_input(path: Path) -> bool:
+    """Whether `path` is something sandro-slam reads (a bag, a KITTI sequence, a folder of scans) rather than a
+    results folder."""
+    from pipelines.io.scan_folder import SCAN_SUFFIXES
+
+    if path.is_file():
+        return path.suffix in BAG_SUFFIXES
+    if not path.is_dir() or (path / "session").is_dir():
+        return False
+    return (
+        (path / "metadata.yaml").is_file()
+        or (path / "velodyne").is_dir()
+        or any(p.suffix.lower() in SCAN_SUFFIXES for p in path.iterdir())
+    )
 
 
 def _load_session(path: Path, bag_out: Path, config: SlamConfig, topic: str | None) -> Session:
-    """A results folder's session, or a bag's after running sandro-slam on it into `bag_out`."""
+    """A results folder's session, or an input's after running sandro-slam on it into `bag_out`."""
     from pipelines.io.session import read_session
 
-    if _is_bag(path):
-        from pipelines.slam_run import run_bag
+    if _is_input(path):
+        from pipelines.slam_run import run_input
 
-        print(f"sandro-merge: processing bag {path} ...", flush=True)
+        print(f"sandro-merge: processing {path} ...", flush=True)
         try:
-            folder, _ = run_bag(path, bag_out, config, topic)
+            folder, _ = run_input(path, bag_out, config, topic=topic)
         except Exception as error:  # the bag reader's own errors: one line, like the other bad inputs
             raise ValueError(f"{path}: {one_line(error)}") from None
         return read_session(folder)

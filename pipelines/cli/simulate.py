@@ -1,10 +1,16 @@
-"""`sandro-simulate`: write a simulated LiDAR drive as a ROS bag of sensor_msgs/PointCloud2, with its ground truth.
+"""`sandro-simulate`: write a simulated LiDAR drive as a ROS bag of sensor_msgs/PointCloud2 or as a folder of scans,
+with its ground truth.
 
 The drive is `pipelines.simulation.simulate_sequence`: a 32-beam spinning LiDAR at 10 Hz through a seeded city
-of repeated and mirror-symmetric blocks, raw (not deskewed) points with range noise. Each message holds x, y, z
-(float32) and t (uint32, ns after header.stamp, the Ouster convention) in the sensor frame; header.stamp is the
-sweep start. The ground truth T_world_sensor goes beside the bag as OUT.gt.tum (TUM: t x y z qx qy qz qw),
-sampled at 100 Hz from the first sweep's start to the last sweep's end, on the bag's clock.
+of repeated and mirror-symmetric blocks, raw (not deskewed) points with range noise. In a bag each message holds
+x, y, z (float32) and t (uint32, ns after header.stamp, the Ouster convention) in the sensor frame; header.stamp is
+the sweep start. Folders (OUT a folder):
+    folder      the same raw scans as PCD files (x, y, z and t), times.txt the sweep starts
+    kitti       the KITTI odometry layout: velodyne/*.bin deskewed scans, times.txt, poses.txt the true poses
+    keyframes   a LiDAR-inertial front end's keyframe dump: deskewed PCD scans, times.txt, and poses.txt its
+                odometry, the true poses drifting by --drift % of the distance
+The ground truth T_world_sensor goes beside OUT as OUT.gt.tum (TUM: t x y z qx qy qz qw), sampled at 100 Hz from
+the first sweep's start to the last sweep's end, on the scans' clock.
 """
 
 from __future__ import annotations
@@ -15,8 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pipelines.cli.entry import CommandError, Parser, run_command
-from pipelines.io.bags import FORMATS
-from pipelines.simulation.bag import DEFAULT_START_TIME, ground_truth_path, simulate_bag
+from pipelines.simulation.export import BAG_FORMATS, DEFAULT_START_TIME, FOLDER_FORMATS, ground_truth_path, simulate
 
 
 def _bounded(kind: Callable[[str], float], low: float, what: str) -> Callable[[str], float]:
@@ -39,10 +44,12 @@ def build_parser() -> argparse.ArgumentParser:
         "out",
         metavar="OUT",
         type=Path,
-        help="the bag to write: a .bag file (ros1) or a folder (ros2-*); ground truth in OUT.gt.tum",
+        help="what to write: a .bag file (ros1), a folder (ros2-*, and the scan folders); ground truth in OUT.gt.tum",
     )
     parser.add_argument(
-        "--format", choices=FORMATS, help="bag format (default: ros1 when OUT ends in .bag, else ros2-mcap)"
+        "--format",
+        choices=BAG_FORMATS + FOLDER_FORMATS,
+        help="bag or scan folder format (default: ros1 when OUT ends in .bag, else ros2-mcap)",
     )
     parser.add_argument("--seed", type=int, default=0, help="seeds the city, the wobble and the noise (default 0)")
     parser.add_argument(
@@ -69,6 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SECONDS",
         help=f"header.stamp of the first scan (default {DEFAULT_START_TIME:.0f})",
     )
+    at_least_zero = _bounded(float, 0.0, "a number >= 0")
+    parser.add_argument("--drift", type=at_least_zero, default=0.5, metavar="PERCENT",
+                        help="drift of a keyframe dump's odometry in %% of the distance (default 0.5)")  # fmt: skip
     parser.add_argument("--force", action="store_true", help="replace OUT and its ground truth if they exist")
     return parser
 
@@ -82,13 +92,13 @@ def _run(args: argparse.Namespace) -> int:
     out: Path = args.out
     fmt = args.format or ("ros1" if out.suffix == ".bag" else "ros2-mcap")
     if (fmt == "ros1") != (out.suffix == ".bag"):
-        raise CommandError(f"OUT must end in .bag for --format ros1, and not for ros2-* (got {out} for {fmt})")
+        raise CommandError(f"OUT must end in .bag for --format ros1, and not otherwise (got {out} for {fmt})")
     existing = [p for p in (out, ground_truth_path(out)) if p.exists() or p.is_symlink()]
     if existing and not args.force:
         raise CommandError(f"{existing[0]} exists (use --force to replace it)")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        count = simulate_bag(
+        count = simulate(
             out,
             fmt,
             args.seed,
@@ -97,12 +107,14 @@ def _run(args: argparse.Namespace) -> int:
             args.noise,
             args.topic,
             args.start_time,
+            drift=args.drift / 100.0,
             overwrite=args.force,
             progress=True,
         )
     except OSError as error:
         raise CommandError(f"cannot write {out}: {error.strerror or error}") from None
-    print(f"wrote {out} ({fmt}, {count} scans on {args.topic}) and {ground_truth_path(out)}")
+    where = f" on {args.topic}" if fmt in BAG_FORMATS else ""
+    print(f"wrote {out} ({fmt}, {count} scans{where}) and {ground_truth_path(out)}")
     return 0
 
 

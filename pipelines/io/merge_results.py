@@ -10,7 +10,7 @@ import numpy as np
 import yaml
 
 from pipelines.io.g2o import write_g2o
-from pipelines.io.pointclouds import submaps_cloud, write_ply
+from pipelines.io.pointclouds import submaps_cloud, write_point_cloud
 from pipelines.io.trajectory import write_kitti, write_tum
 from pipelines.plots import plot_merges
 from sandro_slam import MergeResult, Session, SlamConfig
@@ -83,4 +83,4 @@ def write_merged_map(path: Path, sessions: list[Session], result: MergeResult, v
         cloud = submaps_cloud(((session.submaps[k], poses[k]) for k in session.keys), voxel)
         points.append(cloud)
         colors.append(np.tile(colours(index % 10)[:3], (len(cloud), 1)))
-    return write_ply(path, np.concatenate(points), np.concatenate(colors))
+    return write_point_cloud(path, np.concatenate(points), np.concatenate(colors))

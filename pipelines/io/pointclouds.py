@@ -1,4 +1,4 @@
-"""Point cloud files: reading PLY/PCD (Open3D) and KITTI Velodyne .bin, writing PLY; clouds built from submaps."""
+"""Point cloud files: PLY/PCD (Open3D) and KITTI Velodyne .bin, read and written; clouds built from submaps."""
 
 from __future__ import annotations
 
@@ -56,16 +56,33 @@ def load_point_cloud(path: str | Path) -> np.ndarray:
     return points
 
 
-def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None = None, dtype: type = np.float64) -> int:
-    """Write (N, 3) points as a binary PLY, atomically: coordinates as `dtype` (float64: "double", float32:
-    "float"), colors (N, 3) in [0, 1] as 8-bit RGB when given. Returns the number of points."""
+def write_point_cloud(
+    path: str | Path,
+    points: np.ndarray,
+    colors: np.ndarray | None = None,
+    dtype: type = np.float64,
+    fields: dict[str, np.ndarray] | None = None,
+) -> int:
+    """Write (N, 3) points as a binary PLY or PCD (by the suffix of `path`), atomically: coordinates as `dtype`
+    (float64: "double", float32: "float"), colors (N, 3) in [0, 1] as 8-bit RGB when given, and `fields`: extra
+    per-point values (N,) by name, of their own type (e.g. a per-point time `t`). Returns the number of points."""
     cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(points, dtype=dtype)))
     if colors is not None:
         cloud.point.colors = o3d.core.Tensor(np.round(np.clip(colors, 0.0, 1.0) * 255.0).astype(np.uint8))
+    for name, values in (fields or {}).items():
+        cloud.point[name] = o3d.core.Tensor(np.ascontiguousarray(values).reshape(-1, 1))
     with atomic_path(path) as tmp:
         if not o3d.t.io.write_point_cloud(str(tmp), cloud):
             raise OSError(f"could not write {path}")
     return len(points)
+
+
+def write_kitti_bin(path: str | Path, points: np.ndarray) -> None:
+    """Write (N, 3) points as a KITTI Velodyne .bin (float32 x y z intensity, intensity 0), atomically."""
+    records = np.zeros((len(points), 4), dtype=np.float32)
+    records[:, :3] = points
+    with atomic_path(path) as tmp:
+        records.tofile(tmp)
 
 
 def submaps_cloud(submaps: Iterable[tuple[np.ndarray, np.ndarray]], voxel: float) -> np.ndarray:

@@ -20,7 +20,7 @@ import open3d as o3d
 
 from pipelines.io.atomic import atomic_dir
 from pipelines.io.g2o import read_g2o, write_g2o
-from pipelines.io.pointclouds import write_ply
+from pipelines.io.pointclouds import write_point_cloud
 from sandro_slam import Session, SlamResult
 from sandro_slam.session import SessionEdge
 
@@ -59,7 +59,7 @@ def save_session(folder: Path, session: Session) -> None:
             out / "frames.csv", table, fmt=["%.9f", "%d"] + ["%.9g"] * 12, delimiter=",", header=header, comments=""
         )
         for key in session.keys:
-            write_ply(out / "submaps" / f"{key}.ply", session.submaps[key], dtype=np.float32)
+            write_point_cloud(out / "submaps" / f"{key}.ply", session.submaps[key], dtype=np.float32)
 
 
 def read_session(results_folder: Path) -> Session:

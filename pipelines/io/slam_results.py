@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from pipelines.io.atomic import atomic_path, write_text_atomic
 from pipelines.io.g2o import write_g2o
-from pipelines.io.pointclouds import submaps_cloud, write_ply
+from pipelines.io.pointclouds import submaps_cloud, write_point_cloud
 from pipelines.io.session import write_session
 from pipelines.io.trajectory import write_kitti, write_tum
 from pipelines.plots import plot_slam
@@ -80,6 +80,6 @@ def write_loops(path: Path, result: SlamResult) -> None:
 def write_map(path: Path, result: SlamResult, voxel: float) -> int:
     """The keyframe submaps moved to their optimised poses, one point per `voxel` [m], as a PLY; returns the
     number of points."""
-    return write_ply(
+    return write_point_cloud(
         path, submaps_cloud(((kf.points, result.keyframe_poses[kf.key]) for kf in result.keyframes), voxel)
     )

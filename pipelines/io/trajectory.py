@@ -41,14 +41,20 @@ def read_kitti(path: Path) -> np.ndarray:
 
 
 def read_trajectory(path: Path) -> tuple[np.ndarray | None, np.ndarray]:
-    """(timestamps or None, (N, 4, 4) poses) from a TUM file (8 columns) or a KITTI file (12, no timestamps).
+    """(timestamps or None, (N, 4, 4) poses) from a TUM file (8 columns), a KITTI file (12, no timestamps) or a
+    keyframe pose list (`vN x y z qx qy qz qw`, no timestamps; in the order of N).
 
     Raises:
-        ValueError: a missing file, or one that is neither.
+        ValueError: a missing file, or one that is none of them.
     """
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"no such trajectory file: {path}")
+    with path.open() as handle:
+        first = next((line for line in handle if line.strip() and not line.startswith("#")), "")
+    if first.startswith("v"):
+        poses = read_keyframe_poses(path)
+        return None, np.stack([poses[key] for key in sorted(poses)])
     try:
         with warnings.catch_warnings():  # an empty file: the error below says it better
             warnings.simplefilter("ignore", UserWarning)
@@ -59,7 +65,7 @@ def read_trajectory(path: Path) -> tuple[np.ndarray | None, np.ndarray]:
         return None, read_kitti(path)
     if rows.shape[1:] == (8,):
         return read_tum(path)
-    raise ValueError(f"{path}: neither a TUM (8 columns) nor a KITTI (12 values per line) trajectory")
+    raise ValueError(f"{path}: not a TUM (8 columns), KITTI (12 values per line) or 'vN x y z qx qy qz qw' trajectory")
 
 
 def read_transform(path: str | Path) -> np.ndarray:

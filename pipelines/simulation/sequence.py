@@ -27,6 +27,7 @@ import numpy as np
 from pipelines.simulation.sensor import SpinningLidar
 from pipelines.simulation.trajectory import Route, Trajectory, random_wobble
 from pipelines.simulation.world import CityLayout, World, build_city
+from sandro_core.geometry import transform_points
 from sandro_slam.scan import Scan
 
 
@@ -78,6 +79,20 @@ class SimulatedSequence:
         """All frames in order, one at a time."""
         for index in range(len(self)):
             yield self.frame(index)
+
+    def deskewed(self, index: int) -> tuple[Scan, np.ndarray]:
+        """Frame `index` deskewed with the true motion: `deskew(frame(index))`."""
+        return self.deskew(self.frame(index))
+
+    def deskew(self, frame: Scan) -> tuple[Scan, np.ndarray]:
+        """A frame of this sequence deskewed with the true motion, as a LiDAR-inertial front end delivers it: the
+        scan stamped at its latest point, every point in the sensor frame at that time, no per-point times; and the
+        true T_world_sensor then."""
+        end = frame.timestamp + float(frame.times.max())
+        per_point = self.poses_at(frame.timestamp + frame.times)
+        world = np.einsum("nij,nj->ni", per_point[:, :3, :3], frame.points) + per_point[:, :3, 3]
+        T_world_end = self.poses_at(end)[0]
+        return Scan(end, transform_points(np.linalg.inv(T_world_end), world), np.empty(0)), T_world_end
 
 
 def simulate_sequence(

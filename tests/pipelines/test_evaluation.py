@@ -3,8 +3,9 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pipelines.evaluation import ate, interpolate_poses, pose_errors, rpe
+from pipelines.evaluation import ate, pose_errors, rpe
 from pipelines.simulation.correspondences import random_transform
+from sandro_core.geometry import interpolate_poses
 
 
 def test_ate_ignores_a_rigid_offset_and_rpe_sees_local_errors(walk):

@@ -59,7 +59,7 @@ def test_a_module_unpickled_halfway_goes_on_as_the_original(drive, inline, mode)
     for key in range(half):
         module.add_keyframe(key, odometry[key], scans[key])
     module = pickle.loads(pickle.dumps(module))
-    assert module._descriptions == {}
+    assert module.closer._descriptions == {}
     for key in range(half, len(scans)):
         module.add_keyframe(key, odometry[key], scans[key])
     poses = module.optimize()

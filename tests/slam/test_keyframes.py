@@ -2,6 +2,7 @@
 
 import pickle
 
+import gtsam
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -85,6 +86,18 @@ def test_place_recognition_sees_keyframes_map_closures_spacing_apart():
     assert every._closures.seen == list(range(8))
 
 
+def test_place_recognition_takes_any_64_bit_key():
+    # gtsam symbols (x0, x1, ...) do not fit MapClosures' int ids: the ids are the keyframes' positions instead.
+    recognition = PlaceRecognition(LoopDetectionConfig(map_closures_spacing=0.0))
+    recognition._closures = _Recorder()
+    travelled = {}
+    for index in range(3):
+        key = gtsam.symbol("x", index)
+        travelled[key] = 10.0 * index
+        recognition.candidates(key, np.zeros((10, 3)), travelled)
+    assert recognition._closures.seen == [0, 1, 2]
+
+
 def test_place_recognition_unpickled_finds_what_the_original_finds():
     # MapClosures does not pickle: the unpickled one rebuilds its database from the submaps it saw.
     sequence = simulate_sequence(seed=1, frames=10)
@@ -96,7 +109,7 @@ def test_place_recognition_unpickled_finds_what_the_original_finds():
         ]
     )
     other = np.random.default_rng(0).uniform([-30, -30, -2], [30, 30, 0], (20000, 3))  # another place: rough ground
-    travelled = {0: 0.0, 10: 100.0, 40: 400.0}  # MapClosures matches only keys at least 4 apart
+    travelled = {key: 10.0 * key for key in range(41)}  # MapClosures matches only maps at least 4 keyframes apart
     original = PlaceRecognition(LoopDetectionConfig(map_closures_spacing=0.0))
     original.candidates(0, submap, travelled)
     original.candidates(10, other, travelled)

@@ -119,13 +119,14 @@ def test_a_start_from_rest_that_kiss_icp_gets_wrong_is_re_registered():
 
 def test_a_start_standing_still_is_held_back_no_longer_than_max_held_scans(monkeypatch):
     import sandro_slam.frontend as frontend
+    import sandro_slam.odometry as odometry
 
-    monkeypatch.setattr(frontend, "MAX_HELD_SCANS", 3)
+    monkeypatch.setattr(odometry, "MAX_HELD_SCANS", 3)
     registered, added = [], []  # frames registered by KISS-ICP; (frame, frames registered by then) per added scan
-    register_frame = frontend.ScanOdometry.register_frame
+    register_frame = odometry.ScanOdometry.register_frame
     add_scan = frontend.KeyframeBuilder.add_scan
     monkeypatch.setattr(
-        frontend.ScanOdometry, "register_frame", lambda self, *args: registered.append(1) or register_frame(self, *args)
+        odometry.ScanOdometry, "register_frame", lambda self, *args: registered.append(1) or register_frame(self, *args)
     )
     monkeypatch.setattr(
         frontend.KeyframeBuilder,

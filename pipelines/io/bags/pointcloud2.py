@@ -7,8 +7,9 @@ from typing import Any
 import numpy as np
 from rosbags.typesys.store import Typestore
 
+from pipelines.io.lidar_points import relative_seconds, returns, time_field
+
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
-TIME_FIELDS = ("t", "time", "timestamp", "time_offset", "offset_time")  # searched in this order
 LAYOUTS = ("compact", "ouster")
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}  # sensor_msgs/PointField
 
@@ -25,13 +26,8 @@ def pointcloud2_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     view of `data`, without a loop over points. Points that are not finite (is_dense false) or exactly at
     the origin (the no-return points of Ouster drivers) are dropped, with their times.
 
-    Per-point time: the first field named t, time, timestamp, time_offset or offset_time, of any datatype.
-      - Unit: integer fields are nanoseconds (Ouster `t` uint32, Livox `offset_time` uint32); float fields
-        are seconds (Velodyne `time` float32, Hesai/Robosense `timestamp` float64), unless their typical
-        magnitude exceeds 1e12: then nanoseconds (the float64 `timestamp` of Livox's driver2 PointCloud2).
-      - Reference: the values are absolute times when their median is beyond 1 s and closer to the header
-        stamp than to zero (the stamp is then subtracted); relative to the stamp otherwise.
-      - A field with the same value at every point (or any non-finite value) carries no time: empty array.
+    Per-point time: the first field named t, time, timestamp, time_offset or offset_time, of any datatype, read
+    by the rules of `lidar_points.relative_seconds` (unit and reference from the values themselves).
 
     Raises:
         PointCloud2Error: no x, y or z field, an unknown datatype, a field beyond point_step, or too little data.
@@ -40,7 +36,7 @@ def pointcloud2_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     missing = [axis for axis in "xyz" if axis not in fields]
     if missing:
         raise PointCloud2Error(f"PointCloud2 without {'/'.join(missing)} field (fields: {', '.join(fields) or 'none'})")
-    time_name = next((name for name in TIME_FIELDS if name in fields), None)
+    time_name = time_field(fields)
     names = ["x", "y", "z"] + ([time_name] if time_name else [])
     order = ">" if msg.is_bigendian else "<"
     formats = []
@@ -70,30 +66,14 @@ def pointcloud2_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     for k, axis in enumerate("xyz"):
         points[..., k] = cloud[axis]
     points = points.reshape(-1, 3)
-    squared_range = np.einsum("ij,ij->i", points, points)  # NaN or inf unless x, y and z are all finite
-    valid = (squared_range > 0.0) & (squared_range < np.inf)
-    keep = None if valid.all() else valid
+    keep = returns(points)
     if keep is not None:
         points = points[keep]
     if time_name is None:
         return points, np.empty(0)
     values = cloud[time_name].reshape(-1)
     stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-    return points, _relative_seconds(values if keep is None else values[keep], stamp)
-
-
-def _relative_seconds(values: np.ndarray, stamp: float) -> np.ndarray:
-    """Per-point times [s] relative to `stamp` [s] from a raw time field (rules: `pointcloud2_arrays`)."""
-    if values.size == 0 or not np.isfinite(values).all():
-        return np.empty(0)
-    typical = float(np.median(values[:: max(1, values.size // 256)]))
-    scale = 1e-9 if values.dtype.kind in "iu" or abs(typical) > 1e12 else 1.0
-    times = values.astype(np.float64) * scale
-    if abs(typical * scale) > 1.0 and abs(typical * scale - stamp) < abs(typical * scale):
-        times -= stamp  # absolute times
-    if times.min() == times.max():
-        return np.empty(0)
-    return times
+    return points, relative_seconds(values if keep is None else values[keep], stamp)
 
 
 def encode_pointcloud2(

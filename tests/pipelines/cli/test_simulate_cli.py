@@ -7,7 +7,7 @@ from pipelines.cli.simulate import main
 from pipelines.io.bags import BagScans
 from pipelines.io.trajectory import read_tum
 from pipelines.simulation import simulate_sequence
-from pipelines.simulation.bag import ground_truth_path
+from pipelines.simulation.export import ground_truth_path
 
 
 def test_simulate_cli(tmp_path, capsys):
@@ -43,3 +43,15 @@ def test_simulate_cli(tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and err.startswith("sandro-simulate: error:"), err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["folder", "folder.gt.tum", "sim.bag", "sim.bag.gt.tum"]
+
+
+@pytest.mark.parametrize(("fmt", "files"), [("folder", "000002.pcd"), ("kitti", "velodyne/000002.bin"),
+                                            ("keyframes", "000002.pcd")])  # fmt: skip
+def test_simulate_scan_folders(tmp_path, capsys, fmt, files):
+    out = tmp_path / fmt
+    assert main([str(out), "--format", fmt, "--frames", "3"]) == 0
+    assert (out / files).is_file() and len(np.loadtxt(out / "times.txt")) == 3
+    assert ground_truth_path(out).is_file()
+    assert (out / "poses.txt").is_file() == (fmt != "folder")
+    assert main([str(out), "--format", fmt, "--frames", "3"]) == 2  # refuses to overwrite
+    assert "exists (use --force" in capsys.readouterr().err

@@ -13,9 +13,9 @@ import pytest
 
 from pipelines.cli.slam import main
 from pipelines.io.bags import write_bag
-from pipelines.io.trajectory import read_tum
+from pipelines.io.trajectory import read_tum, write_kitti
 from pipelines.simulation import simulate_sequence
-from pipelines.simulation.bag import ground_truth_path, simulate_bag
+from pipelines.simulation.export import ground_truth_path, simulate
 
 FRAMES = 40
 OUTPUTS = [
@@ -35,7 +35,7 @@ OUTPUTS = [
 @pytest.fixture(scope="module")
 def bag(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("bags") / "city.bag"
-    simulate_bag(path, "ros1", frames=FRAMES)
+    simulate(path, "ros1", frames=FRAMES)
     return path
 
 
@@ -72,7 +72,7 @@ def test_a_run_writes_every_output_and_evaluates_against_the_ground_truth(bag, t
 @pytest.mark.parametrize("fmt", ["ros2-sqlite3", "ros2-mcap"])
 def test_ros2_bags(tmp_path, fmt):
     path = tmp_path / "city"
-    simulate_bag(path, fmt, frames=8)
+    simulate(path, fmt, frames=8)
     assert main([str(path), "--gt", str(ground_truth_path(path)), "--out", str(tmp_path / "r"), "--quiet"]) == 0
     assert json.loads((tmp_path / "r" / "latest" / "metrics.json").read_text())["frames"] == 8
 
@@ -174,3 +174,63 @@ def test_ctrl_c_stops_and_still_writes_the_results(bag, tmp_path):
     metrics = json.loads((out / "latest" / "metrics.json").read_text())
     assert metrics["interrupted"] and 0 < metrics["frames"] < FRAMES
     assert (out / "latest" / "map.ply").is_file()
+
+
+def test_the_same_scans_as_a_bag_and_as_a_folder_give_the_same_result(bag, tmp_path):
+    folder = tmp_path / "city"
+    simulate(folder, "folder", frames=FRAMES)  # PCD files: the bag's points and per-point times
+    results = []
+    for source in (bag, folder):
+        assert main([str(source), "--out", str(tmp_path / source.name), "--quiet"]) == 0
+        latest = tmp_path / source.name / "latest"
+        results.append((read_tum(latest / "odometry.tum"), read_tum(latest / "poses.tum"), latest / "metrics.json"))
+    (bag_times, bag_odometry), (bag_stamps, bag_poses), _ = results[0]
+    (folder_times, folder_odometry), (_, folder_poses), metrics = results[1]
+    np.testing.assert_allclose(folder_times, bag_times, atol=1e-6)
+    np.testing.assert_allclose(folder_odometry, bag_odometry, atol=1e-6)
+    np.testing.assert_allclose(folder_poses, bag_poses, atol=0.02)  # loop registrations use threads
+    assert json.loads(metrics.read_text())["format"] == "folder"
+
+
+def test_given_odometry_is_kept_where_no_loop_moves_it(tmp_path):
+    # A KITTI sequence of deskewed scans; the odometry given: its true poses as TUM, matched by time.
+    sequence = tmp_path / "kitti"
+    simulate(sequence, "kitti", frames=FRAMES)
+    truth = ground_truth_path(sequence)
+    assert main([str(sequence), "--odometry", str(truth), "--out", str(tmp_path / "r"), "--quiet"]) == 0
+    latest = tmp_path / "r" / "latest"
+    metrics = json.loads((latest / "metrics.json").read_text())
+    assert metrics["odometry"] == "given" and metrics["loops_verified"] == 0
+    assert metrics["ground_truth"]["ate_slam_m"] < 1e-4  # against its poses.txt, found beside it: exact poses
+    times, poses = read_tum(latest / "poses.tum")
+    gt_times, gt_poses = read_tum(truth)
+    np.testing.assert_allclose(times, np.loadtxt(sequence / "times.txt"))
+    np.testing.assert_allclose(poses[:, :3, 3], interpolated(gt_times, gt_poses, times)[:, :3, 3], atol=1e-6)
+
+
+def interpolated(times, poses, at):
+    from sandro_core.geometry import interpolate_poses
+
+    mask, out = interpolate_poses(times, poses, at)
+    assert mask.all()
+    return out
+
+
+@pytest.mark.parametrize(
+    ("arguments", "words"),
+    [
+        (["--odometry", "{odometry}"], ["5 poses for", "scans"]),
+        (["--format", "kitti"], ["not a KITTI sequence"]),
+        (["--format", "tape"], ["unknown input format"]),
+        (["--topic", "/points"], ["--topic is for bags"]),
+    ],
+)
+def test_bad_scan_folder_inputs(tmp_path, capsys, arguments, words):
+    folder = tmp_path / "scans"
+    simulate(folder, "folder", frames=3)
+    odometry = tmp_path / "odometry.kitti"
+    write_kitti(odometry, np.tile(np.eye(4), (5, 1, 1)))
+    arguments = [a.format(odometry=odometry) for a in arguments]
+    assert main([str(folder), *arguments, "--out", str(tmp_path / "r")]) == 2
+    _one_line_error(capsys, *words)
+    assert not (tmp_path / "r").exists() or not any((tmp_path / "r").iterdir())

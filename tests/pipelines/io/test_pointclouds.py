@@ -4,21 +4,21 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from pipelines.io.pointclouds import load_point_cloud, submaps_cloud, write_ply
+from pipelines.io.pointclouds import load_point_cloud, submaps_cloud, write_point_cloud
 
 
 def _header(path) -> str:
     return path.read_bytes().split(b"end_header")[0].decode()
 
 
-def test_write_ply_precision_and_colours(tmp_path):
+def test_write_point_cloud_precision_and_colours(tmp_path):
     points = np.random.default_rng(0).uniform(-50.0, 50.0, size=(100, 3))
-    assert write_ply(tmp_path / "d.ply", points) == 100
+    assert write_point_cloud(tmp_path / "d.ply", points) == 100
     assert "property double x" in _header(tmp_path / "d.ply")
     np.testing.assert_array_equal(load_point_cloud(tmp_path / "d.ply"), points)
 
     colors = np.tile([[1.0, 0.5, 0.0]], (100, 1))
-    write_ply(tmp_path / "f.ply", points, colors, dtype=np.float32)
+    write_point_cloud(tmp_path / "f.ply", points, colors, dtype=np.float32)
     assert "property float x" in _header(tmp_path / "f.ply") and "property uchar red" in _header(tmp_path / "f.ply")
     cloud = o3d.io.read_point_cloud(str(tmp_path / "f.ply"))
     np.testing.assert_allclose(np.asarray(cloud.points), points, atol=1e-5)

@@ -1,0 +1,92 @@
+"""What `sandro-slam` reads: a ROS bag, a folder of scans, a KITTI odometry sequence, or a keyframe dump (a folder of
+deskewed scans with the poses of the front end that made them), told apart by their layout or named."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipelines.io.bags import BagScans
+from pipelines.io.scan_folder import ScanFolder
+from pipelines.io.trajectory import read_trajectory
+
+FORMATS = ("bag", "folder", "kitti", "keyframes")
+BAG_SUFFIXES = (".bag", ".mcap", ".db3")
+DUMP_POSES = ("poses.txt", "poses.tum", "poses.kitti")  # the front end's poses beside a keyframe dump's scans
+
+Poses = tuple[np.ndarray | None, np.ndarray]  # (times [s] or None: one pose per scan in order, (N, 4, 4) poses)
+
+
+@dataclass
+class ScanInput:
+    """An opened input: `scans` (len, iteration of `Scan`s, close), what metrics.json says of it, and what came with
+    it: the ground truth (a KITTI sequence's poses.txt) and the odometry (a keyframe dump's poses)."""
+
+    scans: BagScans | ScanFolder
+    description: dict
+    ground_truth: Poses | None = None
+    odometry: Poses | None = None
+    notes: list[str] = field(default_factory=list)  # what was found beside the scans, for the user
+
+    def __enter__(self) -> ScanInput:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.scans.close()
+
+
+def detect_format(path: Path) -> str:
+    """The input format of `path`: a bag file or ROS2 bag folder; a folder with velodyne/ (KITTI); a folder of
+    scans with one of `DUMP_POSES` beside them (keyframes); any other folder of scans.
+
+    Raises:
+        ValueError: no such path.
+    """
+    if not path.exists():
+        raise ValueError(f"{path}: no such file or folder")
+    if path.is_file() or path.name == "metadata.yaml" or (path / "metadata.yaml").exists():
+        return "bag"
+    if (path / "velodyne").is_dir():
+        return "kitti"
+    if any((path / name).is_file() for name in DUMP_POSES):
+        return "keyframes"
+    if any(p.suffix in BAG_SUFFIXES[1:] for p in path.iterdir()):
+        return "bag"  # a ROS2 bag folder that lost its metadata.yaml
+    return "folder"
+
+
+def open_input(path: str | Path, fmt: str | None = None, topic: str | None = None,
+               rate: float | None = None) -> ScanInput:  # fmt: skip
+    """Open `path` as `fmt` (None: `detect_format`). `topic` is for bags, `rate` [Hz] for scan folders without
+    other times.
+
+    Raises:
+        ValueError (BagError for bags): an input that cannot be read as asked, in one line.
+    """
+    path = Path(path)
+    fmt = fmt or detect_format(path)
+    if fmt not in FORMATS:
+        raise ValueError(f"unknown input format {fmt!r}; choose from {', '.join(FORMATS)}")
+    if fmt == "bag":
+        scans = BagScans(path, topic)
+        return ScanInput(scans, {"input": str(path), "format": "bag", "topic": scans.topic, "messages": len(scans)})
+    if topic is not None:
+        raise ValueError(f"{path}: --topic is for bags, this is a {fmt} input")
+    scans = ScanFolder(path, rate)
+    if fmt == "kitti" and not scans.kitti:
+        raise ValueError(f"{path}: not a KITTI sequence folder (no velodyne/)")
+    description = {"input": str(path), "format": fmt, "scans": len(scans)}
+    result = ScanInput(scans, description)
+    if fmt == "kitti":
+        result.ground_truth = scans.ground_truth()
+        if result.ground_truth is not None:
+            result.notes.append(f"ground truth: {path / 'poses.txt'} (in the LiDAR frame, with calib.txt)")
+    if fmt == "keyframes":
+        poses_file = next((path / name for name in DUMP_POSES if (path / name).is_file()), None)
+        if poses_file is None:
+            raise ValueError(f"{path}: a keyframe dump needs its poses beside the scans ({', '.join(DUMP_POSES)})")
+        result.odometry = read_trajectory(poses_file)
+        result.notes.append(f"odometry: {poses_file} (a keyframe dump; --format folder to run KISS-ICP instead)")
+    return result

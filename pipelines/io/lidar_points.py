@@ -1,0 +1,47 @@
+"""What every source of LiDAR points shares (PointCloud2 messages, PCD/PLY files): which points are returns, and the
+conventions of per-point time fields."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+
+TIME_FIELDS = ("t", "time", "timestamp", "time_offset", "offset_time")  # searched in this order
+
+
+def time_field(names: Iterable[str]) -> str | None:
+    """The first of `TIME_FIELDS` among a cloud's field names, or None."""
+    names = set(names)
+    return next((name for name in TIME_FIELDS if name in names), None)
+
+
+def returns(points: np.ndarray) -> np.ndarray | None:
+    """Mask of the (N, 3) points that are returns: finite, and not exactly at the origin (the no-return points of
+    Ouster drivers); None when every point is one."""
+    squared_range = np.einsum("ij,ij->i", points, points)  # NaN or inf unless x, y and z are all finite
+    valid = (squared_range > 0.0) & (squared_range < np.inf)
+    return None if valid.all() else valid
+
+
+def relative_seconds(values: np.ndarray, stamp: float) -> np.ndarray:
+    """Per-point times [s] relative to the cloud's `stamp` [s] from the raw values of its time field.
+
+    - Unit: integer fields are nanoseconds (Ouster `t` uint32, Livox `offset_time` uint32); float fields are seconds
+      (Velodyne `time` float32, Hesai/Robosense `timestamp` float64), unless their typical magnitude exceeds 1e12:
+      then nanoseconds (the float64 `timestamp` of Livox's driver2 PointCloud2).
+    - Reference: the values are absolute times when their median is beyond 1 s and closer to the stamp than to zero
+      (the stamp is then subtracted); relative to the stamp otherwise.
+    - A field with the same value at every point (or any non-finite value) carries no time: an empty array.
+    """
+    values = np.asarray(values).reshape(-1)
+    if values.size == 0 or not np.isfinite(values).all():
+        return np.empty(0)
+    typical = float(np.median(values[:: max(1, values.size // 256)]))
+    scale = 1e-9 if values.dtype.kind in "iu" or abs(typical) > 1e12 else 1.0
+    times = values.astype(np.float64) * scale
+    if abs(typical * scale) > 1.0 and abs(typical * scale - stamp) < abs(typical * scale):
+        times -= stamp  # absolute times
+    if times.min() == times.max():
+        return np.empty(0)
+    return times
