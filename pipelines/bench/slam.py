@@ -20,7 +20,9 @@ per-point times. Measured:
         e.g. a street that looks like another); how many of them and of the real ones the back end rejected;
     false loops: wrong loop factors (30 % more than the true ones: random keyframe pairs with plausible
         small transforms) added to sandro-slam's final graph, optimised by its robust back end and by plain
-        least squares (what KISS-SLAM does): ATE and how many were rejected.
+        least squares (what KISS-SLAM does): ATE and how many were rejected;
+    given odometry: sandro-slam on the deskewed scans and the odometry of a simulated LiDAR-inertial front end,
+        drifting by each of --given-drifts (`bench.given_odometry`): ATE and revisit gap, before and after.
 Writes metrics.json, metrics.csv and trajectories.png into --out.
 """
 
