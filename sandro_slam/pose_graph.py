@@ -30,8 +30,8 @@ class PoseGraph:
     """Keyframe poses T_world_keyframe under a prior on the first, odometry chains and loop closures.
 
     The prior and the odometry factors are known inliers; loops are judged by the robust back end
-    (`GraphConfig.robust`): graduated non-convexity (gtsam GncLMOptimizer, TLS or Geman-McClure)
-    decides which loops are outliers. In incremental mode ISAM2 keeps the estimate and holds the loops the
+    (`GraphConfig.robust`, `robust_backend.robust_optimize`: truncated least squares seeded by the loops that
+    agree with their neighbours, or gtsam's GNC) decides which loops are outliers. In incremental mode ISAM2 keeps the estimate and holds the loops the
     robust back end accepts.
     """
 
@@ -167,7 +167,7 @@ class PoseGraph:
         return result
 
     def _optimize_incremental(self) -> None:
-        """GNC on the whole graph decides which loops hold; ISAM2 gets the newly accepted ones and drops
+        """The robust back end on the whole graph decides which loops hold; ISAM2 gets the newly accepted ones and drops
         the newly rejected ones."""
         self._robust_optimize(self._isam.calculateEstimate())
         added = [loop for loop in self.loops if loop.weight >= 0.5 and loop.factor_index not in self._isam_slots]

@@ -1,16 +1,23 @@
-"""The robust back end: which loop factors of a pose graph to keep, by graduated non-convexity (gtsam GNC).
+"""The robust back end: which loop factors of a pose graph to keep, under a truncated least squares (TLS) cost.
 
-The prior and odometry factors are known inliers; every other factor is a loop the back end may reject. See
-docs/back-end.md for the measurements behind the settings below.
+The prior and odometry factors are known inliers; every other factor is a loop the back end may reject. TLS keeps
+a loop exactly when its whitened error lies below the inlier threshold at the solution. It is reached from the
+loops that agree with their neighbours (`loop_consistency`): solved with those, every loop is judged at the
+solution, and solving and judging alternate until the kept loops no longer change; each round is one
+least-squares solve. Where too few loops have neighbours to agree with, graduated non-convexity (gtsam GNC) finds
+the TLS solution from the start instead, as it does for the Geman-McClure cost. See docs/back-end.md for the
+measurements behind the settings below.
 """
 
 from __future__ import annotations
 
 import gtsam
 import numpy as np
+import scipy.linalg
 from scipy.stats import chi2
 
 from sandro_slam.config import GraphConfig
+from sandro_slam.loop_consistency import supported_loops
 
 GNC_LM_ITERATIONS = 5  # LM iterations per GNC step (gtsam: 100): each step starts from the last
 GNC_LM_RELATIVE_TOL = 1e-3  # LM relative cost decrease that ends a GNC step (gtsam: 1e-5)
@@ -18,11 +25,18 @@ GNC_WEIGHTS_TOL = 0.0  # TLS: never end early because every weight is within thi
 # loop with a tight covariance makes GNC's first control parameter tiny, which leaves every real loop's weight
 # near 0 at the start: that must not pass for converged
 GNC_MU_STEP = {"gnc_tls": 2.0, "gnc_gm": 1.4}  # factor on GNC's control parameter per step (gtsam: 1.4)
+SEED_RELATIVE_TOL = 1e-5  # of the solves between TLS rounds, which start near their solution (gtsam's default)
+MAX_LM_ITERATIONS = 500  # per LM solve (gtsam: 100)
 REFINE_RELATIVE_TOL = 1e-10  # of the final LM on the kept factors: on graphs with loose covariances poses move
 # metres for a relative cost change of gtsam's default 1e-5
 MIN_LOOPS_FOR_SCALE = 10  # kept loops needed to estimate their variance factor
 MIN_KEPT_SHARE = 0.8  # noise_scale 'estimated': of the first run's loops, the scaled run must keep more than this
 MIN_FIT_GAIN = 2.0  # and fit those it keeps this much better (median squared error) than the first run
+MIN_SEED_LOOPS = 10  # loops agreeing with their neighbours needed to start TLS from them rather than run GNC
+SEED_ADMISSION_FACTOR = 1.5  # on the inlier threshold, of the innovation test against the seed solution: the
+# poses where the seed loops are sparse are still far from where all loops put them
+ADMISSION_ROUNDS = 2  # innovation tests, each followed by TLS from the loops it admits
+MAX_TLS_ROUNDS = 10  # solve-and-judge rounds (they end when the kept loops no longer change)
 READMIT_SIGMAS = 7.0  # noise_scale 'estimated': a rejected loop comes back when its log squared error is within
 # this many robust standard deviations of the kept loops'
 
@@ -33,36 +47,192 @@ def robust_optimize(
     """Optimise `graph` with the configured robust back end; returns the values and a weight per factor
     (1 for known inliers; below 0.5 means rejected).
 
-    gnc_tls / gnc_gm: gtsam's GncLMOptimizer, with `known_inliers` (prior and odometry factor indices)
-    never down-weighted and the inlier threshold at `inlier_probability` of the chi-square of each factor's
-    dimension, then Levenberg-Marquardt to convergence (`REFINE_RELATIVE_TOL`) on the factors it kept. GNC
-    runs a short LM (`GNC_LM_ITERATIONS`, relative tolerance `GNC_LM_RELATIVE_TOL`) per step of its control
-    parameter, which changes by `GNC_MU_STEP`: each step starts from the last, so the steps together still
-    converge. GM ends when its control parameter reaches 1, not on gtsam's relative cost test, which can stop
-    it in its first, near-convex steps with every weight still 1. TLS ends on its control parameter or cost,
-    not when its weights look binary (`GNC_WEIGHTS_TOL`).
+    The inlier threshold of a loop is its squared whitened error at `inlier_probability` of the chi-square of
+    its dimension. gnc_tls: TLS from the loops that agree with their neighbours (`supported_loops`), when at
+    least `MIN_SEED_LOOPS` of them fit together (`_seeded`), grown by the innovation test (`_grown`); else
+    gtsam's GncLMOptimizer from `initial` with `known_inliers` (prior and odometry factor indices) never
+    down-weighted (`_gnc`). gnc_gm: always GncLMOptimizer with the Geman-McClure cost. Then Levenberg-Marquardt
+    to convergence (`REFINE_RELATIVE_TOL`) on the factors kept.
     With `noise_scale: estimated`, for graphs whose covariances are not to scale: when the loops the first run
-    kept fit better than their covariances say (`variance_factor` below 1), a second GNC run takes the
-    threshold times that factor, loops it rejected that fit as well as the heavy tail of those it kept come
-    back (`readmitted`), and its result replaces the first when it keeps more than `MIN_KEPT_SHARE` of the
-    loops the first kept and fits them clearly better (`_scaled_run_wins`). Graphs whose loops differ in
-    dimension keep the first run (gtsam takes one threshold).
+    kept fit better than their covariances say (`variance_factor` below 1), a second run takes the thresholds
+    times that factor (TLS from the first run's loops, or GNC from `initial`), loops it rejected that fit as
+    well as the heavy tail of those it kept come back (`readmitted`), and its result replaces the first when
+    it keeps more than `MIN_KEPT_SHARE` of the loops the first kept and fits them clearly better
+    (`_scaled_run_wins`). Graphs whose loops differ in dimension keep the first run.
     none: plain Levenberg-Marquardt, every weight 1.
     """
     if config.robust == "none":
         return gtsam.LevenbergMarquardtOptimizer(graph, initial).optimize(), np.ones(graph.size())
-    values, weights = _gnc(graph, initial, known_inliers, config)
+    loops = _loop_indices(graph.size(), known_inliers)
+    if not len(loops):
+        return _refined(graph, initial, np.ones(graph.size())), np.ones(graph.size())
+    seed = loops[supported_loops(graph, known_inliers)] if config.robust == "gnc_tls" else loops[:0]
+    dims = np.array([graph.at(int(i)).dim() for i in loops])
+    thresholds = chi2.ppf(config.inlier_probability, dims)
+    seeded = _seeded(graph, initial, known_inliers, seed, thresholds)
+    if seeded is not None:
+        values, weights = _grown(graph, *seeded, known_inliers, thresholds, config.noise_scale == "estimated")
+    else:
+        values, weights = _gnc(graph, initial, known_inliers, config, 0.5 * thresholds[0])
     values = _refined(graph, values, weights)
-    dims = {graph.at(int(i)).dim() for i in _loop_indices(graph.size(), known_inliers)}
-    if config.noise_scale == "estimated" and len(dims) == 1:
+    if config.noise_scale == "estimated" and len(set(dims)) == 1:
         scale = variance_factor(graph, values, weights, known_inliers)
         if scale < 1.0:  # 1: too few loops to tell; above 1 the stated covariances are not too loose
-            threshold = 0.5 * chi2.ppf(config.inlier_probability, dims.pop()) * scale
-            scaled_values, scaled_weights = _gnc(graph, initial, known_inliers, config, threshold)
-            scaled_weights = readmitted(graph, scaled_values, scaled_weights, known_inliers)
-            scaled_values = _refined(graph, scaled_values, scaled_weights)
-            if _scaled_run_wins(graph, values, weights, scaled_values, scaled_weights, known_inliers):
-                values, weights = scaled_values, scaled_weights
+            if seeded is not None:  # TLS at the tighter thresholds from the first run's loops
+                scaled = _truncated(graph, values, weights, known_inliers, thresholds * scale)
+            else:
+                scaled = _gnc(graph, initial, known_inliers, config, 0.5 * thresholds[0] * scale)
+            scaled_weights = readmitted(graph, *scaled, known_inliers)
+            scaled = _refined(graph, scaled[0], scaled_weights), scaled_weights
+            if _scaled_run_wins(graph, values, weights, *scaled, known_inliers):
+                values, weights = scaled
+    return values, weights
+
+
+def _grown(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    weights: np.ndarray,
+    known_inliers: list[int],
+    thresholds: np.ndarray,
+    scaled: bool,
+) -> tuple[gtsam.Values, np.ndarray]:
+    """TLS at the squared whitened error `thresholds` (per loop) grown from the seed solution (`values`,
+    `weights`): the loops outside it that fit it as far as it is known (`_admitted`, at the seed loops' scale
+    when `scaled`) join, TLS among those (`_truncated`), and again from that solution, `ADMISSION_ROUNDS` times
+    or until nothing is admitted."""
+    for round_ in range(ADMISSION_ROUNDS):
+        factor = SEED_ADMISSION_FACTOR if round_ == 0 else 1.0
+        values, candidates = _admitted(graph, values, weights, known_inliers, thresholds * factor, scaled)
+        if np.array_equal(candidates, weights):
+            break
+        values, weights = _truncated(graph, values, candidates, known_inliers, thresholds)
+    return values, weights
+
+
+def _seeded(
+    graph: gtsam.NonlinearFactorGraph,
+    initial: gtsam.Values,
+    known_inliers: list[int],
+    seed: np.ndarray,
+    thresholds: np.ndarray,
+) -> tuple[gtsam.Values, np.ndarray] | None:
+    """The solution with the known inliers and the `seed` loops (those that agree with their neighbours), and its
+    weights, once the seed loops fit it together: none beyond its threshold and beyond the seed loops' own tail
+    (`READMIT_SIGMAS` robust standard deviations of their log errors). Those that do not are dropped and the rest
+    solved again, once. None when fewer than `MIN_SEED_LOOPS` remain or they still do not fit: GNC then decides."""
+    loops = _loop_indices(graph.size(), known_inliers)
+    threshold_of = dict(zip(loops.tolist(), thresholds))
+    for _ in range(2):
+        if len(seed) < MIN_SEED_LOOPS:
+            return None
+        weights = np.ones(graph.size())
+        weights[loops] = 0.0
+        weights[seed] = 1.0
+        values = _refined(graph, initial, weights)  # to convergence: from poor initial values poses still move
+        # far while the cost barely changes
+        errors = np.array([2.0 * graph.at(int(i)).error(values) for i in seed])
+        misfit = (errors > np.array([threshold_of[int(i)] for i in seed])) & (errors > _tail_limit(errors))
+        if not misfit.any():
+            return values, weights
+        seed = seed[~misfit]
+    return None
+
+
+def _admitted(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    weights: np.ndarray,
+    known_inliers: list[int],
+    thresholds: np.ndarray,
+    scaled: bool,
+) -> tuple[gtsam.Values, np.ndarray]:
+    """The seed solution with the loops outside the seed that pass the innovation test against it, solved again.
+
+    A loop far from the seed loops meets a solution that only the odometry holds there: its plain error can be
+    large while the poses' uncertainty says it is plausible. The test whitens the loop's error by its covariance
+    plus its poses' covariance in the seed solution and admits it within its threshold. When `scaled`, the
+    covariances are taken at the scale the seed solution shows (each factor at most 1, so covariances not to
+    scale admit no more): the loop's by the seed loops' median squared error over the chi-square median,
+    divided by the mean share of a factor's error a least-squares fit leaves (redundancy over measurement
+    dimensions: the fit pulls every factor's error below its noise); the poses' by the seed solution's
+    a-posteriori variance factor (2 cost / redundancy). The poses' marginal covariances are taken as
+    uncorrelated, which overstates the uncertainty of poses that move together: what it lets in, `_truncated`
+    judges again.
+    Returns the solution and the weights of the seed and admitted loops (1), the candidates of `_truncated`."""
+    loops = _loop_indices(graph.size(), known_inliers)
+    outside = [(int(i), t) for i, t in zip(loops, thresholds) if weights[i] < 0.5]
+    if not outside:
+        return values, weights
+    kept = gtsam.NonlinearFactorGraph()
+    for index in np.flatnonzero(weights >= 0.5):
+        kept.add(graph.at(int(index)))
+    try:
+        marginals = gtsam.Marginals(kept, values)
+    except RuntimeError:  # poses that only loops outside the seed hold: no covariance to test against
+        return values, weights
+    loop_scale, pose_scale = 1.0, 1.0
+    if scaled:
+        seed = loops[weights[loops] >= 0.5]
+        measured = sum(kept.at(i).dim() for i in range(kept.size()))
+        redundancy = measured - values.dim()
+        if redundancy > 0:
+            shrinkage = redundancy / measured  # mean share of a factor's error left after the fit
+            ratio = float(np.median([_chi2_ratio(graph.at(int(i)), values) for i in seed]))
+            loop_scale = min(1.0, ratio / shrinkage)
+            pose_scale = min(1.0, 2.0 * kept.error(values) / redundancy)
+    covariance: dict[int, np.ndarray] = {}
+    admitted = weights.copy()
+    for index, threshold in outside:
+        factor = graph.at(index)
+        A, b = factor.linearize(values).jacobian()  # whitened by the loop's own covariance; columns in key order
+        for key in factor.keys():
+            if key not in covariance:
+                covariance[key] = marginals.marginalCovariance(key)
+        S = scipy.linalg.block_diag(*[covariance[key] for key in factor.keys()])
+        innovation = float(b @ np.linalg.solve(loop_scale * np.eye(len(b)) + pose_scale * A @ S @ A.T, b))
+        if innovation <= threshold:
+            admitted[index] = 1.0
+    if np.array_equal(admitted, weights):
+        return values, weights
+    return _refined(graph, values, admitted, relative_tol=SEED_RELATIVE_TOL), admitted
+
+
+def _chi2_ratio(factor: gtsam.NonlinearFactor, values: gtsam.Values) -> float:
+    """The factor's squared whitened error at `values` over the chi-square median of its dimension."""
+    return 2.0 * factor.error(values) / chi2.median(factor.dim())
+
+
+def _tail_limit(errors: np.ndarray) -> float:
+    """The largest squared whitened error within `READMIT_SIGMAS` robust standard deviations (1.4826 x median
+    absolute deviation, in log10) above the median of `errors`."""
+    log_error = np.log10(np.maximum(errors, 1e-300))
+    median = np.median(log_error)
+    sigma = 1.4826 * np.median(np.abs(log_error - median))
+    return float(10.0 ** (median + READMIT_SIGMAS * sigma))
+
+
+def _truncated(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    candidates: np.ndarray,
+    known_inliers: list[int],
+    thresholds: np.ndarray,
+) -> tuple[gtsam.Values, np.ndarray]:
+    """TLS among the `candidates` (weight 1) from `values`: keep those whose squared whitened error is within
+    their `thresholds` (per loop, in the order of `_loop_indices`), solve with them, judge the candidates again,
+    until the kept loops no longer change. Returns the solution and its 0/1 weights."""
+    loops = _loop_indices(graph.size(), known_inliers)
+    mine = candidates[loops] >= 0.5
+    weights = candidates.copy()
+    for _ in range(MAX_TLS_ROUNDS):
+        errors = np.array([2.0 * graph.at(int(i)).error(values) for i in loops])
+        judged = weights.copy()
+        judged[loops] = ((errors <= thresholds) & mine).astype(float)
+        if np.array_equal(judged, weights):
+            break
+        weights = judged
+        values = _refined(graph, values, weights, relative_tol=SEED_RELATIVE_TOL)
     return values, weights
 
 
@@ -84,14 +254,20 @@ def check_loops(
     return weights[loop_indices] >= 0.5, optimized
 
 
-def _refined(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, weights: np.ndarray) -> gtsam.Values:
-    """Levenberg-Marquardt to convergence (`REFINE_RELATIVE_TOL`) on the factors of weight >= 0.5."""
+def _refined(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    weights: np.ndarray,
+    relative_tol: float = REFINE_RELATIVE_TOL,
+) -> gtsam.Values:
+    """Levenberg-Marquardt to convergence (`relative_tol`) on the factors of weight >= 0.5."""
     kept = gtsam.NonlinearFactorGraph()
     for index in np.flatnonzero(weights >= 0.5):
         kept.add(graph.at(int(index)))
     params = gtsam.LevenbergMarquardtParams()
-    params.setRelativeErrorTol(REFINE_RELATIVE_TOL)
+    params.setRelativeErrorTol(relative_tol)
     params.setAbsoluteErrorTol(0.0)
+    params.setMaxIterations(MAX_LM_ITERATIONS)
     return gtsam.LevenbergMarquardtOptimizer(kept, values, params).optimize()
 
 
@@ -115,7 +291,10 @@ def variance_factor(
 
 
 def readmitted(
-    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, weights: np.ndarray, known_inliers: list[int]
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    weights: np.ndarray,
+    known_inliers: list[int],
 ) -> np.ndarray:
     """`weights` with weight 1 for every loop whose squared whitened error at `values` lies within
     `READMIT_SIGMAS` robust standard deviations (1.4826 x median absolute deviation, in log10) above the
@@ -126,14 +305,12 @@ def readmitted(
     loops lie far beyond it.
     """
     loops = _loop_indices(graph.size(), known_inliers)
-    log_error = np.log10([max(2.0 * graph.at(int(i)).error(values), 1e-300) for i in loops])
+    errors = np.array([2.0 * graph.at(int(i)).error(values) for i in loops])
     kept = weights[loops] >= 0.5
     if kept.sum() < MIN_LOOPS_FOR_SCALE:
         return weights
-    median = np.median(log_error[kept])
-    sigma = 1.4826 * np.median(np.abs(log_error[kept] - median))
     out = weights.copy()
-    out[loops[log_error <= median + READMIT_SIGMAS * sigma]] = 1.0
+    out[loops[errors <= _tail_limit(errors[kept])]] = 1.0
     return out
 
 

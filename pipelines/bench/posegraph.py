@@ -1,7 +1,8 @@
 """`sandro-bench posegraph`: the robust back end on real pose graphs with injected outlier loops.
 
 Per graph (every *.g2o in --data; 2D EDGE_SE2 or 3D EDGE_SE3:QUAT, read with gtsam.readG2o plus a prior on
-the first pose):
+the first pose; edges between consecutive ids are the odometry, duplicates included; where it has gaps, each
+further chain gets a weak prior on its first pose; a graph without such edges is refused):
     reference: plain Levenberg-Marquardt from the file's initial values on the clean graph (the published
         optimum) and its cost (gtsam error, 0.5 * sum of squared whitened residuals).
     info scale: every edge's information matrix multiplied by a factor (default 1: as published; 'auto':
@@ -12,7 +13,7 @@ the first pose):
         relative pose (translation uniform in a ball of 5 m, rotation about a random axis by up to
         +-30 deg; 2D: a disc and a yaw) with the noise model of a typical real loop (median log-det of
         the information). Seeded by (seed, graph name, rate).
-    methods: gnc_tls (sandro_slam's default back end: `sandro_slam.pose_graph.robust_optimize` with
+    methods: gnc_tls (sandro_slam's default back end: `sandro_slam.robust_backend.robust_optimize` with
         `noise_scale: estimated`, prior and odometry as known inliers), gnc_tls_given and gnc_gm (TLS and
         Geman-McClure with the covariances as given), lm (plain), huber (k = 1.345) and cauchy (k = 2.3849) on
         every loop edge only; k are the 95 %-efficiency constants, on whitened residuals.
@@ -20,10 +21,11 @@ the first pose):
         pose), rotation RMSE [deg], pose_rel = translation RMSE / trajectory scale (RMS distance of the
         reference positions from their centroid), cost_rel = |clean cost at the result - reference cost| /
         reference cost; for GNC the precision and recall of rejecting the injected loops (weight < 0.5)
-        and the number of real loops rejected. within_1pct: pose_rel <= 1 % and cost_rel <= 1 %.
+        and the number of real loops rejected. within_1pct: pose_rel <= 1 % and cost_rel <= 1 %. time_s and
+        time_x_ref: the run's time and its ratio to the reference's.
 Writes into --out: results.csv (one row per graph, info scale, rate, initial values and method; rewritten after
 every run, so a long run can be read while it goes), reference.csv, posegraph.png (translation RMSE per method
-and rate, one panel per graph) and settings.json.
+and rate, one panel per graph), posegraph_time.png (time against graph size) and settings.json.
 """
 
 from __future__ import annotations
@@ -58,17 +60,19 @@ METHODS = (*BACK_ENDS, "lm", "huber", "cauchy")
 INITS = ("file", "odometry")  # initial values of the corrupted graph: the file's, or the odometry chain
 KERNELS = {"huber": 1.345, "cauchy": 2.3849}  # mEstimator constants on whitened residuals
 PRIOR_SIGMA = 1e-3  # [rad], [m], on the first pose
+CHAIN_PRIOR_SIGMA = 1e3  # [rad], [m], on the first pose of every further odometry chain
 OUTLIER_MAX_TRANSLATION = 5.0  # [m]
 OUTLIER_MAX_ANGLE_DEG = 30.0
 QUICK_POSES = 200  # --quick keeps the first graph's first poses only
 TARGET = 0.01  # pose_rel and cost_rel of a robust result within 1 % of the reference
 REFERENCE_FIELDS = [
-    "graph", "info_scale", "dim", "n_poses", "n_odometry", "n_loops", "cost_clean", "variance_factor", "scale_m",
-    "time_s",
+    "graph", "info_scale", "dim", "n_poses", "n_chains", "n_odometry", "n_loops", "cost_clean", "variance_factor",
+    "scale_m", "time_s",
 ]  # fmt: skip
 RESULT_FIELDS = [
     "graph", "info_scale", "rate_pct", "n_outliers", "init", "method", "trans_rmse_m", "trans_max_m", "rot_rmse_deg",
-    "pose_rel", "cost", "cost_rel", "precision", "recall", "real_rejected", "time_s", "within_1pct", "error",
+    "pose_rel", "cost", "cost_rel", "precision", "recall", "real_rejected", "time_s", "time_x_ref", "within_1pct",
+    "error",
 ]  # fmt: skip
 
 
@@ -79,7 +83,7 @@ class Problem:
     name: str
     is3d: bool
     keys: list[int]  # sorted pose ids
-    prior: gtsam.NonlinearFactor
+    priors: list[gtsam.NonlinearFactor]  # on the first pose; weak ones on the first pose of every further chain
     odometry: list[gtsam.NonlinearFactor]  # edges between consecutive ids: known inliers
     loops: list[gtsam.NonlinearFactor]  # every other edge: real loops
     initial: gtsam.Values  # the file's vertices (readG2o chains the edges where a file has none)
@@ -96,10 +100,10 @@ class Reference:
     variance_factor: float  # 2 * cost / redundancy: 1 when the noise models match the residuals
 
 
-def _prior(key: int, pose: gtsam.Pose2 | gtsam.Pose3, is3d: bool) -> gtsam.NonlinearFactor:
+def _prior(key: int, pose: gtsam.Pose2 | gtsam.Pose3, is3d: bool, sigma: float) -> gtsam.NonlinearFactor:
     if is3d:
-        return gtsam.PriorFactorPose3(key, pose, gtsam.noiseModel.Isotropic.Sigma(6, PRIOR_SIGMA))
-    return gtsam.PriorFactorPose2(key, pose, gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA))
+        return gtsam.PriorFactorPose3(key, pose, gtsam.noiseModel.Isotropic.Sigma(6, sigma))
+    return gtsam.PriorFactorPose2(key, pose, gtsam.noiseModel.Isotropic.Sigma(3, sigma))
 
 
 def _pose(values: gtsam.Values, key: int, is3d: bool) -> gtsam.Pose2 | gtsam.Pose3:
@@ -118,8 +122,13 @@ def _is_2d(path: Path) -> bool:
 def load_problem(path: Path, max_poses: int | None = None) -> Problem:
     """Read a g2o file (2D or 3D) and split its edges; `max_poses` keeps the first poses and their edges.
 
+    Edges between consecutive ids are the odometry (duplicates included), every other edge a loop. Where the
+    odometry has gaps, the graph is several chains that only loops join (sessions): each chain after the first
+    gets a weak prior (`CHAIN_PRIOR_SIGMA`) at its first pose, so that it stays determined when the robust back
+    end rejects every loop to it; the prior does not move the clean optimum measurably.
+
     Raises:
-        ValueError: gtsam cannot read the file, or it has no consecutive-id odometry chain.
+        ValueError: gtsam cannot read the file, or fewer than 3 poses, or no edge between consecutive ids.
     """
     is3d = not _is_2d(path)
     try:
@@ -134,27 +143,31 @@ def load_problem(path: Path, max_poses: int | None = None) -> Problem:
         a, b = factor.keys()
         if a in kept and b in kept:
             (odometry if abs(a - b) == 1 else loops).append(factor)
+    if len(keys) < 3 or not odometry:
+        raise ValueError(f"{path}: needs at least 3 poses and an odometry chain (edges between consecutive ids)")
     chained = {min(factor.keys()) for factor in odometry}
-    if len(keys) < 3 or not chained.issuperset(keys[:-1]):
-        raise ValueError(f"{path}: needs at least 3 poses chained by edges between consecutive ids")
+    starts = [keys[0]] + [
+        key for previous, key in zip(keys, keys[1:]) if previous not in chained or key != previous + 1
+    ]
     values = gtsam.Values()
     for key in keys:
         values.insert(key, _pose(initial, key, is3d))
-    prior = _prior(keys[0], _pose(initial, keys[0], is3d), is3d)
-    return Problem(path.stem, is3d, keys, prior, odometry, loops, values)
+    priors = [_prior(key, _pose(initial, key, is3d), is3d, PRIOR_SIGMA if key == keys[0] else CHAIN_PRIOR_SIGMA)
+              for key in starts]  # fmt: skip
+    return Problem(path.stem, is3d, keys, priors, odometry, loops, values)
 
 
 def odometry_initial(problem: Problem) -> gtsam.Values:
-    """Initial values from the file's first pose composed along the odometry edges."""
+    """Initial values from the file's first pose of each chain composed along the odometry edges."""
     steps = {}
     for factor in problem.odometry:
         a, b = factor.keys()
         steps[min(a, b)] = factor.measured() if b > a else factor.measured().inverse()
     values = gtsam.Values()
-    pose = _pose(problem.initial, problem.keys[0], problem.is3d)
-    values.insert(problem.keys[0], pose)
-    for key in problem.keys[1:]:
-        pose = pose.compose(steps[key - 1])
+    pose = None
+    for key in problem.keys:
+        step = steps.get(key - 1)
+        pose = _pose(problem.initial, key, problem.is3d) if pose is None or step is None else pose.compose(step)
         values.insert(key, pose)
     return values
 
@@ -162,11 +175,11 @@ def odometry_initial(problem: Problem) -> gtsam.Values:
 def build_graph(
     problem: Problem, outliers: list[gtsam.NonlinearFactor]
 ) -> tuple[gtsam.NonlinearFactorGraph, list[int]]:
-    """Prior, odometry, real loops, then `outliers`; returns the graph and its known-inlier indices."""
+    """Priors, odometry, real loops, then `outliers`; returns the graph and its known-inlier indices."""
     graph = gtsam.NonlinearFactorGraph()
-    for factor in [problem.prior, *problem.odometry, *problem.loops, *outliers]:
+    for factor in [*problem.priors, *problem.odometry, *problem.loops, *outliers]:
         graph.add(factor)
-    return graph, list(range(1 + len(problem.odometry)))
+    return graph, list(range(len(problem.priors) + len(problem.odometry)))
 
 
 def typical_loop_noise(problem: Problem) -> gtsam.noiseModel.Base:
@@ -406,12 +419,13 @@ def format_table(references: list[dict[str, object]], rows: list[dict[str, objec
     """Text tables: the references, then one line per graph, info scale, rate, init and method."""
     lines = [
         "reference (clean graph, LM from the file's initial values; variance factor = 2 cost / redundancy)",
-        f"{'graph':<16}{'info x':>8} {'dim':>4}{'poses':>7}{'odom':>7}{'loops':>7}{'cost':>13}{'var.f.':>10}"
-        f"{'scale m':>9}{'time s':>8}",
+        f"{'graph':<16}{'info x':>8} {'dim':>4}{'poses':>7}{'chains':>7}{'odom':>7}{'loops':>7}{'cost':>13}"
+        f"{'var.f.':>10}{'scale m':>9}{'time s':>8}",
     ]
     for ref in references:
         lines.append(
-            f"{ref['graph']:<16}{ref['info_scale']:>8.3g} {ref['dim']:>4}{ref['n_poses']:>7}{ref['n_odometry']:>7}"
+            f"{ref['graph']:<16}{ref['info_scale']:>8.3g} {ref['dim']:>4}{ref['n_poses']:>7}{ref['n_chains']:>7}"
+            f"{ref['n_odometry']:>7}"
             f"{ref['n_loops']:>7}{ref['cost_clean']:>13.6g}{ref['variance_factor']:>10.3g}{ref['scale_m']:>9.1f}"
             f"{ref['time_s']:>8.2f}"
         )
@@ -421,7 +435,7 @@ def format_table(references: list[dict[str, object]], rows: list[dict[str, objec
         "rejection of the injected loops; ok: both rel <= 1 %)",
         f"{'graph':<16}{'info x':>8}{'rate%':>6}{'n_out':>6} {'init':<9}{'method':<8}{'rmse m':>10}"
         f"{'max m':>10}{'rot deg':>9}{'pose_rel%':>10}{'cost_rel%':>11}{'prec':>6}{'rec':>6}{'real_rej':>9}"
-        f"{'time s':>8}  ok",
+        f"{'time s':>8}{'x ref':>7}  ok",
     ]
     for r in rows:
         label = (
@@ -435,6 +449,7 @@ def format_table(references: list[dict[str, object]], rows: list[dict[str, objec
             f"{label}{r['trans_rmse_m']:>10.3g}{r['trans_max_m']:>10.3g}{r['rot_rmse_deg']:>9.3g}"
             f"{100 * r['pose_rel']:>10.3g}{100 * r['cost_rel']:>11.3g}{_cell(r.get('precision'), '.2f'):>6}"
             f"{_cell(r.get('recall'), '.2f'):>6}{_cell(r.get('real_rejected'), 'd'):>9}{r['time_s']:>8.2f}"
+            f"{r['time_x_ref']:>7.1f}"
             f"  {'yes' if r['within_1pct'] else 'no'}"
         )
     return "\n".join(lines)
@@ -472,6 +487,37 @@ def plot(rows: list[dict[str, object]], references: list[dict[str, object]], pat
     plt.close(fig)
 
 
+def plot_times(rows: list[dict[str, object]], references: list[dict[str, object]], path: Path) -> None:
+    """Time [s] against graph size (poses), log-log: one series per method and outlier rate, the clean
+    least-squares reference in black, the 60 s mark dashed."""
+    fig, ax = plt.subplots(figsize=(7, 4.8))
+    poses = {(r["graph"], r["info_scale"]): r["n_poses"] for r in references}
+    series = list(dict.fromkeys((row["method"], row["init"], row["rate_pct"]) for row in rows))
+    markers = "os^vD<>p*h"
+    for j, (method, init, rate) in enumerate(series):
+        mine = [r for r in rows if (r["method"], r["init"], r["rate_pct"]) == (method, init, rate) and not r["error"]]
+        mine.sort(key=lambda r: poses[(r["graph"], r["info_scale"])])
+        label = f"{method} ({init}), {rate} %" if len({s[1] for s in series}) > 1 else f"{method}, {rate} %"
+        ax.plot([poses[(r["graph"], r["info_scale"])] for r in mine], [r["time_s"] for r in mine],
+                marker=markers[j % len(markers)], linewidth=1, label=label)  # fmt: skip
+    clean = sorted((r["n_poses"], r["time_s"]) for r in references)
+    ax.plot(*zip(*clean), "k-", marker="x", linewidth=1.5, label="clean least squares")
+    ax.axhline(60.0, color="k", linestyle="--", linewidth=1, label="60 s")
+    for ref in references:
+        ax.annotate(ref["graph"], (ref["n_poses"], ref["time_s"]), fontsize=7, textcoords="offset points",
+                    xytext=(0, -10), ha="center")  # fmt: skip
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("poses")
+    ax.set_ylabel("time [s]")
+    ax.set_title("robust pose-graph optimisation time against graph size")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run every graph, info scale, rate, init and method; write CSVs, plot and settings into --out; print the
     tables."""
@@ -495,7 +541,8 @@ def run(args: argparse.Namespace) -> int:
                 problem, ref = scale_information(file_problem, file_ref, info_scale)
                 references.append({
                     "graph": problem.name, "info_scale": info_scale, "dim": 3 if problem.is3d else 2,
-                    "n_poses": len(problem.keys), "n_odometry": len(problem.odometry), "n_loops": len(problem.loops),
+                    "n_poses": len(problem.keys), "n_chains": len(problem.priors), "n_odometry": len(problem.odometry),
+                    "n_loops": len(problem.loops),
                     "cost_clean": ref.cost, "variance_factor": ref.variance_factor, "scale_m": ref.scale,
                     "time_s": elapsed,
                 })  # fmt: skip
@@ -510,11 +557,13 @@ def run(args: argparse.Namespace) -> int:
                                 "n_outliers": graph.size() - len(known) - len(problem.loops),
                                 "init": init, "method": method,
                             }  # fmt: skip
-                            rows.append({**labels, **run_one(problem, ref, method, graph, initials[init], known)})
+                            row = {**labels, **run_one(problem, ref, method, graph, initials[init], known)}
+                            rows.append({**row, "time_x_ref": row["time_s"] / elapsed})
                             write_csv(out / "results.csv", rows, RESULT_FIELDS)  # so far: a long run can be read
                             progress.update()
 
     plot(rows, references, out / "posegraph.png")
+    plot_times(rows, references, out / "posegraph_time.png")
     print(format_table(references, rows))
     print(f"results in {out}")
     return 0

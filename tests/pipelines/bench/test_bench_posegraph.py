@@ -7,7 +7,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from pipelines.bench.posegraph import RESULT_FIELDS, inject_outliers, load_problem
+from pipelines.bench.posegraph import CHAIN_PRIOR_SIGMA, RESULT_FIELDS, inject_outliers, load_problem, odometry_initial
 from pipelines.cli.bench import main
 
 LAP = 30  # poses per lap of the circle
@@ -97,7 +97,9 @@ def test_quick_run_writes_outputs_and_gnc_rejects_the_injected_loops(data, tmp_p
     plain = [row for row in rows if row["method"] == "lm" and row["rate_pct"] == "50"]
     assert float(plain[0]["trans_rmse_m"]) > 0.1  # the injected loops do hurt least squares
     assert (out / "reference.csv").is_file() and (out / "settings.json").is_file()
-    assert (out / "posegraph.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for plot in ("posegraph.png", "posegraph_time.png"):
+        assert (out / plot).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert all(float(row["time_x_ref"]) > 0 for row in rows)
     assert graph in capsys.readouterr().out
 
 
@@ -110,6 +112,31 @@ def test_injected_loops_are_seeded_and_skip_neighbours(data):
     assert all(np.allclose(a.measured().matrix(), b.measured().matrix()) for a, b in zip(first, again))
     assert all(abs(a - b) > 1 for a, b in (f.keys() for f in first))
     assert all(np.linalg.norm(f.measured().translation()) <= 5.0 for f in first)
+
+
+def test_a_gap_in_the_odometry_starts_a_second_chain_with_a_weak_prior(data, tmp_path):
+    lines = (data / "circle3d.g2o").read_text().splitlines()
+    gap = [line for line in lines if not line.startswith(f"EDGE_SE3:QUAT {LAP - 1} {LAP} ")]
+    assert len(gap) == len(lines) - 1
+    path = tmp_path / "sessions.g2o"
+    path.write_text("\n".join(gap) + "\n")
+    problem = load_problem(path)
+    assert [prior.keys()[0] for prior in problem.priors] == [0, LAP]
+    assert problem.priors[1].noiseModel().sigmas() == pytest.approx([CHAIN_PRIOR_SIGMA] * 6)
+    assert len(problem.odometry) == 2 * LAP - 2 and len(problem.loops) == LAP
+    chained = odometry_initial(problem)  # the second chain starts again at the file's pose
+    assert chained.size() == 2 * LAP and chained.atPose3(LAP).equals(problem.initial.atPose3(LAP), 1e-9)
+
+
+def test_a_graph_without_consecutive_edges_is_refused_with_one_line(data, tmp_path, capsys):
+    lines = (data / "circle3d.g2o").read_text().splitlines()
+    only_loops = [
+        line for line in lines if not line.startswith("EDGE") or abs(int(line.split()[1]) - int(line.split()[2])) != 1
+    ]
+    (data / "circle3d.g2o").write_text("\n".join(only_loops) + "\n")
+    assert main(["posegraph", "--data", str(data), "--graphs", "circle3d", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "odometry chain" in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
 
 
 @pytest.mark.parametrize(
