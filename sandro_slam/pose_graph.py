@@ -29,10 +29,10 @@ class LoopFactor:
 class PoseGraph:
     """Keyframe poses T_world_keyframe under a prior on the first, odometry chains and loop closures.
 
-    The prior and the odometry factors are known inliers; loops are judged by the robust back end
-    (`GraphConfig.robust`, `robust_backend.robust_optimize`: truncated least squares seeded by the loops that
-    agree with their neighbours, or gtsam's GNC) decides which loops are outliers. In incremental mode ISAM2 keeps the estimate and holds the loops the
-    robust back end accepts.
+    The prior and the odometry factors are known inliers; the robust back end (`GraphConfig.robust`,
+    `robust_backend.robust_optimize`: truncated least squares seeded by the loops that agree with their
+    neighbours, or gtsam's GNC) decides which loops are outliers. In incremental mode ISAM2 keeps the estimate
+    and holds the loops the robust back end accepts.
     """
 
     def __init__(self, config: GraphConfig):
