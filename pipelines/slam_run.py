@@ -31,14 +31,16 @@ def run_input(
     max_frames: int | None = None,
     map_voxel: float = 0.2,
     progress: bool = False,
+    ctrl_c: bool = True,
 ) -> tuple[Path, dict]:
     """Run the pipeline over an input (`io.inputs.open_input(path, fmt, topic, rate)`) and write a new results
     folder under `out`; returns it and the metrics.
 
     `ground_truth` and `odometry`: (times or None, poses) as `io.trajectory.read_trajectory` returns them; None takes
     what came with the input (a KITTI sequence's poses.txt, a keyframe dump's poses), if anything. With odometry its
-    poses replace KISS-ICP's (matched to the scans by time, or one per scan in order). While it runs, the first
-    Ctrl-C stops reading (what was read is still optimised and written), the second raises KeyboardInterrupt.
+    poses replace KISS-ICP's (matched to the scans by time, or one per scan in order). While it runs, with `ctrl_c`
+    (in the main thread only), the first Ctrl-C stops reading (what was read is still optimised and written), the
+    second raises KeyboardInterrupt.
 
     Raises:
         ValueError (BagError for bags): the input cannot be read, or the odometry does not fit it (before anything
@@ -56,7 +58,7 @@ def run_input(
             raise OSError(f"cannot write results under {out}: {error.strerror or error}") from None
         total = len(source.scans) if max_frames is None else min(len(source.scans), max_frames)
         reading = _Clock()
-        stop = _StopRequest()
+        stop = _StopRequest(ctrl_c)
         frames = _timed(itertools.islice(source.scans, total), reading)
         if progress:
             from tqdm import tqdm
@@ -134,18 +136,22 @@ def _timed(items: Iterable, clock: _Clock) -> Iterator:
 
 
 class _StopRequest:
-    """While active, the first Ctrl-C only asks the frame stream to end; the second raises KeyboardInterrupt."""
+    """While active, the first Ctrl-C only asks the frame stream to end; the second raises KeyboardInterrupt.
+    Not `listening`: Ctrl-C keeps its handler (a worker of a batch, where the driver decides)."""
 
-    def __init__(self) -> None:
+    def __init__(self, listening: bool = True) -> None:
         self.requested = False
+        self._listening = listening
         self._previous = None
 
     def __enter__(self) -> _StopRequest:
-        self._previous = signal.signal(signal.SIGINT, self._handle)
+        if self._listening:
+            self._previous = signal.signal(signal.SIGINT, self._handle)
         return self
 
     def __exit__(self, *exc) -> None:
-        signal.signal(signal.SIGINT, self._previous)
+        if self._listening:
+            signal.signal(signal.SIGINT, self._previous)
 
     def _handle(self, signum, frame) -> None:
         if self.requested:

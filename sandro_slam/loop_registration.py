@@ -26,6 +26,23 @@ class SubmapDescription:
     icp_points: o3d.geometry.PointCloud  # the submap at icp_voxel: ICP's source side and the overlap check
     tree: cKDTree  # of the descriptors, built once for every pair the keyframe takes part in
 
+    def __getstate__(self) -> dict[str, np.ndarray]:
+        """Pickled as arrays (Open3D's clouds do not pickle); the clouds and the tree are rebuilt from them."""
+        return {
+            "keypoints": self.keypoints,
+            "descriptors": self.descriptors,
+            "normals": np.asarray(self.cloud.normals),
+            "icp_points": np.asarray(self.icp_points.points),
+        }
+
+    def __setstate__(self, state: dict[str, np.ndarray]) -> None:
+        arrays = {name: np.array(value) for name, value in state.items()}  # writable copies: Open3D needs them
+        self.keypoints, self.descriptors = arrays["keypoints"], arrays["descriptors"]
+        self.cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(arrays["keypoints"]))
+        self.cloud.normals = o3d.utility.Vector3dVector(arrays["normals"])
+        self.icp_points = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(arrays["icp_points"]))
+        self.tree = cKDTree(self.descriptors)
+
 
 @dataclass
 class PairRegistration:

@@ -16,6 +16,7 @@ BENCHMARKS = {  # subcommand -> module with add_arguments(parser) and run(args) 
     "slam": "pipelines.bench.slam",
     "posegraph": "pipelines.bench.posegraph",
     "merge": "pipelines.bench.merge",
+    "batch": "pipelines.bench.batch",
 }
 
 

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+from contextlib import nullcontext
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -41,6 +43,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, required=True, help="output folder (new or empty)")
     parser.add_argument("--config", type=Path, help="SlamConfig YAML (its merge section; default: built-in values)")
     parser.add_argument("--topic", help="PointCloud2 topic of bags given as sessions")
+    parser.add_argument("--workers", type=int, default=1, help="submap descriptions and pair registrations at once "
+                        "on a local Ray (default 1: in this process; more needs pip install '.[cluster]')")  # fmt: skip
+    parser.add_argument("--ray", metavar="ADDRESS", help="run them on an existing Ray cluster ('auto': the one this "
+                        "machine belongs to)")  # fmt: skip
+    parser.add_argument("--threads-per-task", type=int, default=0, metavar="N", help="threads each description or "
+                        "registration may use (default 0: all)")  # fmt: skip
     return parser
 
 
@@ -52,19 +60,30 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     if len(args.sessions) < 2:
         raise CommandError("at least two sessions are needed")
+    if args.workers < 1 or args.threads_per_task < 0:
+        raise CommandError("--workers must be at least 1 and --threads-per-task at least 0")
+    parallel = args.workers > 1 or args.ray is not None
+    from pipelines.cluster import INSTALL_RAY, ray_available
+
+    if parallel and not ray_available():
+        raise CommandError(INSTALL_RAY)
     if args.out.exists() and (not args.out.is_dir() or any(args.out.iterdir())):
         raise CommandError(f"{args.out} exists and is not an empty folder: refusing to overwrite it")
+    from pipelines.cluster import ray_map, ray_session, threads_limited
     from pipelines.io.atomic import atomic_dir
     from pipelines.io.merge_results import write_merge
     from sandro_slam import SlamConfig, merge_sessions
+    from sandro_slam.merge.pipeline import serial_map
 
     config = SlamConfig.load(args.config)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_dir(args.out) as out:
+    threads = args.threads_per_task
+    with atomic_dir(args.out) as out, threads_limited(threads):
         out.mkdir()
-        sessions = [_load_session(path, out / "sessions", config, args.topic) for path in args.sessions]
-        _unique_names(sessions)
-        result = merge_sessions(sessions, config)
+        with ray_session(args.workers, args.ray, threads, warm_up=True) if parallel else nullcontext():
+            sessions = [_load_session(path, out / "sessions", config, args.topic) for path in args.sessions]
+            _unique_names(sessions)
+            result = merge_sessions(sessions, config, partial(ray_map, threads=threads) if parallel else serial_map)
         if not result.ok:
             refused = "; ".join(f"{name}: {why}" for name, why in result.refused.items())
             raise CommandError(f"refused, nothing written: {refused}", EXIT_REFUSED)

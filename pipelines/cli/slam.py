@@ -18,15 +18,23 @@ Each run writes a new folder OUT/<YYYYmmdd-HHMMSS> (OUT/latest points at it):
     config.yaml, metrics.json       the configuration used; frames/s, loop counts, ATE/RPE against --gt
     session/                        keyframe submaps and graph, for sandro-merge
 Ctrl-C stops reading and still optimises and writes everything; a second Ctrl-C aborts.
+
+Several inputs (or --workers, --ray, --resume) make a batch: each input gets its own OUT/<name>/<YYYYmmdd-HHMMSS>
+(<name>: the input's file or folder name without suffix) and OUT/batch.csv, OUT/batch.json sum them up (status,
+frames, loops, frames/s, ATE, the error of a failed input). A failed input does not stop the others. --gt and
+--odometry are then patterns with {name}, e.g. --gt 'truth/{name}.tum'. Inputs run as Ray tasks (pip install
+'.[cluster]'): on a local Ray with --workers CPUs, or on an existing cluster with --ray ADDRESS. Exit code 1 when
+an input failed.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
-from pipelines.cli.entry import CommandError, Parser, run_command
+from pipelines.cli.entry import EXIT_ABORTED, EXIT_REFUSED, CommandError, Parser, run_command
 
 DEFAULT_OUT = Path("results") / "sandro-slam"
 
@@ -34,20 +42,28 @@ DEFAULT_OUT = Path("results") / "sandro-slam"
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface of `sandro-slam`."""
     parser = Parser(prog="sandro-slam", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("input", metavar="INPUT", type=Path, help="a bag, a folder of scans, a KITTI sequence folder "
-                        "or a keyframe dump")  # fmt: skip
+    parser.add_argument("input", metavar="INPUT", type=Path, nargs="+", help="a bag, a folder of scans, a KITTI "
+                        "sequence folder or a keyframe dump; several make a batch")  # fmt: skip
     parser.add_argument("--format", help="the input's format: bag, folder, kitti or keyframes (default: told from "
                         "its layout)")  # fmt: skip
     parser.add_argument("--topic", help="sensor_msgs/PointCloud2 topic (needed when the bag has several)")
     parser.add_argument("--rate", type=float, help="scans per second [Hz] of a scan folder without other times")
-    parser.add_argument("--odometry", type=Path, metavar="POSES", help="poses of your own front end instead of "
+    parser.add_argument("--odometry", metavar="POSES", help="poses of your own front end instead of "
                         "KISS-ICP: TUM (by time) or KITTI (one per scan); the scans deskewed already")  # fmt: skip
     parser.add_argument("--config", type=Path, help="SlamConfig YAML (default: configs/default.yaml's values)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"base results folder (default {DEFAULT_OUT})")
-    parser.add_argument("--gt", type=Path, help="ground truth: TUM (matched by time) or KITTI (one pose per scan)")
+    parser.add_argument("--gt", help="ground truth: TUM (matched by time) or KITTI (one pose per scan)")
     parser.add_argument("--max-frames", type=int, help="process at most this many scans")
     parser.add_argument("--map-voxel", type=float, default=0.2, help="voxel size of map.ply [m] (default 0.2)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    batch = parser.add_argument_group("batch (several inputs)")
+    batch.add_argument("--workers", type=int, help="inputs run at once on a local Ray (default: the number of cores "
+                       "with Ray installed, else 1: in this process)")  # fmt: skip
+    batch.add_argument("--ray", metavar="ADDRESS", help="run on an existing Ray cluster ('auto': the one this machine "
+                       "belongs to)")  # fmt: skip
+    batch.add_argument("--resume", action="store_true", help="skip inputs whose results are complete")
+    batch.add_argument("--threads-per-task", type=int, default=0, metavar="N", help="threads each input may use "
+                       "(default 0: all)")  # fmt: skip
     return parser
 
 
@@ -63,15 +79,22 @@ def _run(args: argparse.Namespace) -> int:
         raise CommandError("--map-voxel must be positive")
     if args.rate is not None and not args.rate > 0:
         raise CommandError("--rate must be positive")
-    from pipelines.io.trajectory import read_trajectory
-    from pipelines.slam_run import run_input
+    if args.workers is not None and args.workers < 1:
+        raise CommandError("--workers must be at least 1")
+    if args.threads_per_task < 0:
+        raise CommandError("--threads-per-task must be 0 (all) or more")
     from sandro_slam import SlamConfig
 
     config = SlamConfig.load(args.config)
-    ground_truth = read_trajectory(args.gt) if args.gt is not None else None
-    odometry = read_trajectory(args.odometry) if args.odometry is not None else None
+    if len(args.input) > 1 or args.workers is not None or args.ray is not None or args.resume:
+        return _run_batch(args, config)
+    from pipelines.io.trajectory import read_trajectory
+    from pipelines.slam_run import run_input
+
+    ground_truth = read_trajectory(Path(args.gt)) if args.gt is not None else None
+    odometry = read_trajectory(Path(args.odometry)) if args.odometry is not None else None
     folder, metrics = run_input(
-        args.input,
+        args.input[0],
         args.out,
         config,
         fmt=args.format,
@@ -85,6 +108,36 @@ def _run(args: argparse.Namespace) -> int:
     )
     print_summary(folder, metrics)
     return 0
+
+
+def _run_batch(args: argparse.Namespace, config) -> int:
+    from pipelines.batch import jobs_for, run_batch, write_summary
+    from pipelines.cluster import INSTALL_RAY, ray_available
+
+    workers = args.workers
+    if workers is None:
+        workers = min(os.cpu_count() or 1, len(args.input)) if ray_available() else 1
+    if (workers > 1 or args.ray is not None) and not ray_available():
+        raise CommandError(INSTALL_RAY)
+    jobs = jobs_for(
+        args.input, args.out, gt=args.gt, odometry=args.odometry, config=config, fmt=args.format, topic=args.topic,
+        rate=args.rate, max_frames=args.max_frames, map_voxel=args.map_voxel, threads=args.threads_per_task,
+    )  # fmt: skip
+    rows: list[dict] = []
+    try:
+        rows = run_batch(jobs, workers, args.ray, args.resume, progress=not args.quiet,
+                         on_row=lambda so_far: write_summary(args.out, so_far))  # fmt: skip
+    finally:
+        if rows:
+            write_summary(args.out, rows)
+    for row in rows:
+        detail = row.get("error") or row.get("results") or ""
+        print(f"{row['status']:<9} {row['input']}  {detail}")
+    failed = sum(row["status"] == "failed" for row in rows)
+    print(f"{len(rows) - failed} of {len(rows)} inputs done or skipped; summary: {args.out / 'batch.csv'}")
+    if any(row["status"] in ("stopped", "cancelled") for row in rows):
+        return EXIT_ABORTED
+    return EXIT_REFUSED if failed else 0
 
 
 def print_summary(folder: Path, metrics: dict) -> None:

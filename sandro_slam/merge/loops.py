@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,11 +32,20 @@ class InterSessionLoop:
     weight: float = float("nan")  # robust back end's weight (below 0.5: rejected; nan: not in the graph)
 
 
-def register_pair(
-    i: int, ki: int, j: int, kj: int, descriptions: Descriptions, config: SlamConfig, found_by: str
-) -> InterSessionLoop | None:
-    """The loop from keyframe `kj` of session j onto keyframe `ki` of session i, or None if not verified."""
-    pair = register_submaps(descriptions[i][ki], descriptions[j][kj], config.registration)
-    if not pair.accepted:
-        return None
-    return InterSessionLoop(i, ki, j, kj, pair.T_target_source, pair.covariance, pair.inliers, pair.overlap, found_by)
+def register_pairs(
+    pairs: list[tuple[int, int, int, int]],
+    descriptions: Descriptions,
+    config: SlamConfig,
+    found_by: str,
+    map_function: Callable[[Callable, list[tuple]], list],
+) -> list[InterSessionLoop]:
+    """The verified loops among `pairs` (i, ki, j, kj): keyframe kj of session j registered onto keyframe ki of
+    session i, the registrations run by `map_function`; in the order of `pairs`."""
+    registered = map_function(
+        register_submaps, [(descriptions[i][ki], descriptions[j][kj], config.registration) for i, ki, j, kj in pairs]
+    )
+    return [
+        InterSessionLoop(i, ki, j, kj, pair.T_target_source, pair.covariance, pair.inliers, pair.overlap, found_by)
+        for (i, ki, j, kj), pair in zip(pairs, registered)
+        if pair.accepted
+    ]

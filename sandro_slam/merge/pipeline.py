@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import gtsam
 import numpy as np
@@ -12,7 +13,7 @@ from sandro_slam.loop_registration import describe_submap
 from sandro_slam.merge.descriptor import place_candidates
 from sandro_slam.merge.free_space import FreeSpace, pair_conflict
 from sandro_slam.merge.graph import MergeResult, accepted_pairs, build_graph, merge_result
-from sandro_slam.merge.loops import Descriptions, InterSessionLoop, register_pair
+from sandro_slam.merge.loops import Descriptions, InterSessionLoop, register_pairs
 from sandro_slam.merge.voting import fits, spanning_transforms, vote
 from sandro_slam.robust_backend import robust_optimize
 from sandro_slam.session import Session
@@ -21,26 +22,42 @@ from sandro_slam.timing import Stopwatch
 MIN_SUBMAP_POINTS = 10
 
 
-def merge_sessions(sessions: list[Session], config: SlamConfig | None = None) -> MergeResult:
-    """Join `sessions` (each in its own world frame) into the first one's frame; see the package docstring."""
+MapFunction = Callable[[Callable, list[tuple]], list]  # (function, argument tuples) -> results, in order
+
+
+def serial_map(function: Callable, arguments: list[tuple]) -> list:
+    """`function(*args)` for every tuple of `arguments`, one after the other in this process."""
+    return [function(*args) for args in arguments]
+
+
+def merge_sessions(
+    sessions: list[Session], config: SlamConfig | None = None, map_function: MapFunction = serial_map
+) -> MergeResult:
+    """Join `sessions` (each in its own world frame) into the first one's frame; see the package docstring.
+
+    `map_function` runs the independent expensive steps, the submap descriptions and the pair registrations: serial
+    by default, or spread over workers (`pipelines.cluster.ray_map`); the result does not depend on it."""
     config = config or SlamConfig()
     merge = config.merge
     _check(sessions)
     start = time.perf_counter()
     stopwatch = Stopwatch()
     with stopwatch("describe"):
-        descriptions = [
-            {
-                k: describe_submap(s.submaps[k], config.registration)
-                for k in s.keys
-                if len(s.submaps[k]) >= MIN_SUBMAP_POINTS
-            }
-            for s in sessions
-        ]
+        keys = [[k for k in s.keys if len(s.submaps[k]) >= MIN_SUBMAP_POINTS] for s in sessions]
+        described = iter(
+            map_function(
+                describe_submap, [(s.submaps[k], config.registration) for s, ks in zip(sessions, keys) for k in ks]
+            )
+        )
+        descriptions = [{k: next(described) for k in ks} for ks in keys]
     with stopwatch("place_recognition"):
         candidates = place_candidates(sessions, descriptions, config)
     with stopwatch("registration"):
-        loops, tried = _register_candidates(candidates, descriptions, config)
+        pairs = [
+            (i, ki, j, kj) for (i, j), chosen in candidates.items() for ki, kj in chosen[: merge.max_candidate_pairs]
+        ]
+        loops = register_pairs(pairs, descriptions, config, "place_recognition", map_function)
+        tried = set(pairs)
         votes = {
             (i, j): vote(sessions, [lp for lp in loops if (lp.target_session, lp.source_session) == (i, j)], merge)
             for i in range(len(sessions))
@@ -68,28 +85,13 @@ def merge_sessions(sessions: list[Session], config: SlamConfig | None = None) ->
 
     with stopwatch("guided_registration"):
         if merge.guided_radius > 0 and len(T_merged) > 1:
-            loops += _guided_loops(sessions, T_merged, descriptions, tried, config)
+            loops += _guided_loops(sessions, T_merged, descriptions, tried, config, map_function)
     with stopwatch("optimization"):
         graph, estimate, known, loop_factors = _optimize(sessions, T_merged, loops, refused, config)
     with stopwatch("marginals"):
         result = merge_result(sessions, T_merged, refused, loops, graph, estimate, known, loop_factors)
     result.timings = {**stopwatch.seconds, "total": time.perf_counter() - start}
     return result
-
-
-def _register_candidates(
-    candidates: dict[tuple[int, int], list[tuple[int, int]]], descriptions: Descriptions, config: SlamConfig
-) -> tuple[list[InterSessionLoop], set[tuple[int, int, int, int]]]:
-    """The verified loops among the place-recognition candidates (at most `max_candidate_pairs` per pair of
-    sessions, best first), and every (i, ki, j, kj) tried."""
-    loops, tried = [], set()
-    for (i, j), pairs in candidates.items():
-        for ki, kj in pairs[: config.merge.max_candidate_pairs]:
-            loop = register_pair(i, ki, j, kj, descriptions, config, "place_recognition")
-            tried.add((i, ki, j, kj))
-            if loop is not None:
-                loops.append(loop)
-    return loops, tried
 
 
 def _optimize(
@@ -168,10 +170,11 @@ def _guided_loops(
     descriptions: Descriptions,
     tried: set[tuple[int, int, int, int]],
     config: SlamConfig,
+    map_function: MapFunction,
 ) -> list[InterSessionLoop]:
     """Register, for every keyframe of a joined session, the nearest keyframe of each earlier joined session
     within `guided_radius` in the merged frame (pairs not tried yet)."""
-    found = []
+    pairs = []
     joined = sorted(T_merged)
     positions = {
         i: (
@@ -194,8 +197,9 @@ def _guided_loops(
                 if distance[nearest] > config.merge.guided_radius or (i, ki, j, kj) in tried:
                     continue
                 tried.add((i, ki, j, kj))
-                loop = register_pair(i, ki, j, kj, descriptions, config, "guided")
-                if loop is not None:
-                    loop.voted = fits(sessions, loop, np.linalg.inv(T_merged[i]) @ T_merged[j], config.merge)
-                    found.append(loop)
+                pairs.append((i, ki, j, kj))
+    found = register_pairs(pairs, descriptions, config, "guided", map_function)
+    for loop in found:
+        i, j = loop.target_session, loop.source_session
+        loop.voted = fits(sessions, loop, np.linalg.inv(T_merged[i]) @ T_merged[j], config.merge)
     return found
