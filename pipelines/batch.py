@@ -136,6 +136,10 @@ def run_batch(
             _serial(jobs, todo, rows, bar, on_row)
         else:
             _on_ray(jobs, todo, rows, bar, on_row, workers, ray_address)
+    except KeyboardInterrupt:  # the summary still lists every input, the unfinished ones as cancelled
+        if on_row:
+            on_row([row or _cancelled(job) for row, job in zip(rows, jobs)])
+        raise
     finally:
         bar.close()
     return [row or _cancelled(job) for row, job in zip(rows, jobs)]
