@@ -4,7 +4,8 @@ Each input writes its own results folder, OUT/<name>/<YYYYmmdd-HHMMSS> with OUT/
 (`slam_run.run_input`), where <name> is the input's file or folder name without suffix (made unique with -2, -3
 where two inputs share one). The batch summary (`batch.csv`, `batch.json` in OUT) has one row per input: its status
 (done; failed; skipped by --resume; stopped by Ctrl-C, what was read written; cancelled), frames, loops, frames/s,
-ATE where a ground truth is given and the one-line error of a failed input. A failed input never stops the others.
+ATE where a ground truth is given, peak memory and the one-line error of a failed input. A failed input never stops
+the others.
 
 Ray is an optional dependency (`pip install .[cluster]`): one worker runs in this process without it.
 """
@@ -66,8 +67,8 @@ def jobs_for(inputs: list[Path], out: Path, gt: str | None = None, odometry: str
         taken.add(name)
         jobs.append(Job(
             path, out / name,
-            gt=Path(gt.format(name=stem)) if gt is not None else None,
-            odometry=Path(odometry.format(name=stem)) if odometry is not None else None,
+            gt=Path(gt.replace("{name}", stem)) if gt is not None else None,
+            odometry=Path(odometry.replace("{name}", stem)) if odometry is not None else None,
             **common,
         ))  # fmt: skip
     return jobs
