@@ -20,6 +20,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from pipelines.cli.entry import one_line
 from pipelines.cluster import ray_session, threads_limited
 from pipelines.io.atomic import write_text_atomic
 from sandro_slam import SlamConfig
@@ -77,11 +78,9 @@ def jobs_for(inputs: list[Path], out: Path, gt: str | None = None, odometry: str
 def run_job(job: Job, ctrl_c: bool = False) -> dict:
     """Run one input; returns its summary row. Every error of the input becomes status 'failed' with the error's
     one line. `ctrl_c`: the first Ctrl-C stops reading this input and still writes its results (`run_input`)."""
-    from pipelines.cli.entry import one_line
     from pipelines.io.trajectory import read_trajectory
     from pipelines.slam_run import run_input
 
-    row = {"input": str(job.input), "name": job.out.name, "status": "failed"}
     try:
         with _threads_limited(job.config, job.threads) as config:
             folder, metrics = run_input(
@@ -91,9 +90,9 @@ def run_job(job: Job, ctrl_c: bool = False) -> dict:
                 max_frames=job.max_frames, map_voxel=job.map_voxel, ctrl_c=ctrl_c,
             )  # fmt: skip
     except Exception as error:  # noqa: BLE001 - a corrupt input may fail anywhere; the batch goes on
-        return {**row, "error": one_line(error)}
+        return {**_head(job, "failed"), "error": one_line(error)}
     status = "stopped" if metrics["interrupted"] else "done"
-    return {**row, **_row(folder, metrics), "status": status, "peak_rss_mb": _peak_rss_mb()}
+    return {**_head(job, status), **_row(folder, metrics), "peak_rss_mb": _peak_rss_mb()}
 
 
 def finished_row(job: Job) -> dict | None:
@@ -105,7 +104,7 @@ def finished_row(job: Job) -> dict | None:
     metrics = json.loads(path.read_text())
     if metrics.get("interrupted"):
         return None
-    return {"input": str(job.input), "name": job.out.name, **_row(path.parent.resolve(), metrics), "status": "skipped"}
+    return {**_head(job, "skipped"), **_row(path.parent.resolve(), metrics)}
 
 
 def run_batch(
@@ -139,11 +138,11 @@ def run_batch(
             _on_ray(jobs, todo, rows, bar, on_row, workers, ray_address)
     except KeyboardInterrupt:  # the summary still lists every input, the unfinished ones as cancelled
         if on_row:
-            on_row([row or _cancelled(job) for row, job in zip(rows, jobs)])
+            on_row(_every_row(rows, jobs))
         raise
     finally:
         bar.close()
-    return [row or _cancelled(job) for row, job in zip(rows, jobs)]
+    return _every_row(rows, jobs)
 
 
 def write_summary(out: Path, rows: list[dict]) -> None:
@@ -184,8 +183,7 @@ def _on_ray(jobs: list[Job], todo: list[int], rows: list, bar, on_row, workers: 
                 try:
                     rows[i] = ray.get(done[0])
                 except ray.exceptions.RayError as error:  # the worker died (out of memory, killed)
-                    rows[i] = {"input": str(jobs[i].input), "name": jobs[i].out.name, "status": "failed",
-                               "error": " ".join(str(error).split())[:500]}  # fmt: skip
+                    rows[i] = {**_head(jobs[i], "failed"), "error": one_line(error)[:500]}
                 bar.update()
                 if on_row:
                     on_row([r for r in rows if r is not None])
@@ -226,8 +224,14 @@ def _peak_rss_mb() -> float:
     return round((self_kb + children_kb) / 1024.0, 1)
 
 
-def _cancelled(job: Job) -> dict:
-    return {"input": str(job.input), "name": job.out.name, "status": "cancelled"}
+def _head(job: Job, status: str) -> dict:
+    """The columns of a summary row that every input has."""
+    return {"input": str(job.input), "name": job.out.name, "status": status}
+
+
+def _every_row(rows: list[dict | None], jobs: list[Job]) -> list[dict]:
+    """A row per job: those without one yet are cancelled."""
+    return [row or _head(job, "cancelled") for row, job in zip(rows, jobs)]
 
 
 class _NoBar:

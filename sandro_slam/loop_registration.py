@@ -13,6 +13,7 @@ from sandro_core import register
 from sandro_core.features import fpfh_features, mutual_matches
 from sandro_slam.config import LoopRegistrationConfig
 
+MIN_SUBMAP_POINTS = 10  # a submap with fewer points is not described nor registered
 ICP_RELATIVE_TOLERANCE = 1e-4  # relative change of fitness and RMSE that ends ICP (open3d: 1e-6)
 
 

@@ -11,10 +11,8 @@ import numpy as np
 from sandro_slam.candidates import PlaceRecognition, radius_candidates
 from sandro_slam.config import SlamConfig
 from sandro_slam.factors import between_factor, odometry_covariance
-from sandro_slam.loop_registration import SubmapDescription, describe_submap, register_submaps
+from sandro_slam.loop_registration import MIN_SUBMAP_POINTS, SubmapDescription, describe_submap, register_submaps
 from sandro_slam.pose_graph import LoopFactor, PoseGraph
-
-MIN_SUBMAP_POINTS = 10  # a keyframe with fewer points takes no part in loop closure
 
 
 @dataclass
@@ -108,7 +106,7 @@ class LoopCloser:
                 self._estimates[key] = np.asarray(T, dtype=np.float64)
 
     def __getstate__(self) -> dict:
-        # Descriptions hold Open3D clouds, which do not pickle: `_description` makes them again from the submaps.
+        # Descriptions are not sent along: `_description` makes them again from the submaps when needed.
         return {**self.__dict__, "_descriptions": {}}
 
     def _close_loops(self, key: int, points: np.ndarray) -> list[LoopClosure]:

@@ -7,14 +7,12 @@ scan's points in the sensor frame at that pose, voxelised no coarser than the su
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 from kiss_icp.kiss_icp import KissICP
 from kiss_icp.mapping import get_voxel_hash_map
-from scipy.spatial.transform import Rotation, Slerp
 
-from sandro_core.geometry import transform_points
+from sandro_core.geometry import interpolate_poses, transform_points
 from sandro_slam.config import SlamConfig
 from sandro_slam.keyframes import voxel_downsample
 from sandro_slam.scan import Scan
@@ -109,15 +107,9 @@ class GivenPoses:
         if not self.times[0] <= stamp <= self.times[-1]:
             return None
         upper = int(np.clip(np.searchsorted(self.times, stamp), 1, len(self.times) - 1))
-        s = (stamp - self.times[upper - 1]) / (self.times[upper] - self.times[upper - 1])
-        pose = np.eye(4)
-        pose[:3, :3] = self._rotations(stamp).as_matrix()
-        pose[:3, 3] = (1.0 - s) * self.poses[upper - 1, :3, 3] + s * self.poses[upper, :3, 3]
-        return pose
-
-    @cached_property
-    def _rotations(self) -> Slerp:
-        return Slerp(self.times, Rotation.from_matrix(self.poses[:, :3, :3]))
+        around = slice(upper - 1, upper + 1)  # the two poses around `stamp`: no interpolator over all of them
+        _, pose = interpolate_poses(self.times[around], self.poses[around], np.array([stamp]), max_gap=np.inf)
+        return pose[0]
 
 
 class GivenOdometry:

@@ -285,9 +285,7 @@ def variance_factor(
     kept = loops[weights[loops] >= 0.5]
     if len(kept) < MIN_LOOPS_FOR_SCALE:
         return 1.0
-    factors = [graph.at(int(i)) for i in kept]
-    whitened = [2.0 * factor.error(values) / chi2.median(factor.dim()) for factor in factors]
-    return float(np.median(whitened))
+    return float(np.median([_chi2_ratio(graph.at(int(i)), values) for i in kept]))
 
 
 def readmitted(

@@ -27,8 +27,6 @@ from pipelines.cli.entry import EXIT_REFUSED, CommandError, Parser, one_line, ru
 if TYPE_CHECKING:
     from sandro_slam import MergeResult, Session, SlamConfig
 
-BAG_SUFFIXES = (".bag", ".mcap", ".db3")
-
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface of `sandro-merge`."""
@@ -95,6 +93,7 @@ def _run(args: argparse.Namespace) -> int:
 def _is_input(path: Path) -> bool:
     """Whether `path` is something sandro-slam reads (a bag, a KITTI sequence, a folder of scans) rather than a
     results folder."""
+    from pipelines.io.inputs import BAG_SUFFIXES
     from pipelines.io.scan_folder import SCAN_SUFFIXES
 
     if path.is_file():

@@ -123,13 +123,9 @@ def _run_batch(args: argparse.Namespace, config) -> int:
         args.input, args.out, gt=args.gt, odometry=args.odometry, config=config, fmt=args.format, topic=args.topic,
         rate=args.rate, max_frames=args.max_frames, map_voxel=args.map_voxel, threads=args.threads_per_task,
     )  # fmt: skip
-    rows: list[dict] = []
-    try:
-        rows = run_batch(jobs, workers, args.ray, args.resume, progress=not args.quiet,
-                         on_row=lambda so_far: write_summary(args.out, so_far))  # fmt: skip
-    finally:
-        if rows:
-            write_summary(args.out, rows)
+    rows = run_batch(jobs, workers, args.ray, args.resume, progress=not args.quiet,
+                     on_row=lambda so_far: write_summary(args.out, so_far))  # fmt: skip
+    write_summary(args.out, rows)  # with the inputs a Ctrl-C left cancelled
     for row in rows:
         detail = row.get("error") or row.get("results") or ""
         print(f"{row['status']:<9} {row['input']}  {detail}")

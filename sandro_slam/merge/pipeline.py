@@ -9,7 +9,7 @@ import gtsam
 import numpy as np
 
 from sandro_slam.config import MergeConfig, SlamConfig
-from sandro_slam.loop_registration import describe_submap
+from sandro_slam.loop_registration import MIN_SUBMAP_POINTS, describe_submap
 from sandro_slam.merge.descriptor import place_candidates
 from sandro_slam.merge.free_space import FreeSpace, pair_conflict
 from sandro_slam.merge.graph import MergeResult, accepted_pairs, build_graph, merge_result
@@ -18,9 +18,6 @@ from sandro_slam.merge.voting import fits, spanning_transforms, vote
 from sandro_slam.robust_backend import robust_optimize
 from sandro_slam.session import Session
 from sandro_slam.timing import Stopwatch
-
-MIN_SUBMAP_POINTS = 10
-
 
 MapFunction = Callable[[Callable, list[tuple]], list]  # (function, argument tuples) -> results, in order
 

@@ -1,5 +1,12 @@
 """Fixtures shared by the pipelines tests."""
 
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -38,3 +45,29 @@ def walk():
         return np.array(out)
 
     return poses
+
+
+@pytest.fixture
+def interrupted_slam():
+    """(sandro-slam arguments, started: () -> bool, wait [s], settle [s]) -> (exit code, stderr): `sandro-slam` in a
+    process group of its own, Ctrl-C sent to the group as a terminal does `settle` seconds after `started()` holds
+    (or after `wait` seconds), then waited for."""
+
+    def run(arguments: list[str], started, wait: float, settle: float = 0.0) -> tuple[int, str]:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "pipelines.cli.slam", *arguments],
+            cwd=Path(__file__).resolve().parents[2],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+        )
+        deadline = time.monotonic() + wait
+        while not started() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(settle)
+        os.killpg(process.pid, signal.SIGINT)
+        _, stderr = process.communicate(timeout=120)
+        return process.returncode, stderr
+
+    return run

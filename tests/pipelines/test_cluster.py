@@ -2,11 +2,6 @@
 
 import csv
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -136,25 +131,13 @@ def test_the_batch_benchmark_runs_and_finds_equal_results(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_ctrl_c_cancels_a_ray_batch_and_lists_what_did_not_finish(tmp_path):
+def test_ctrl_c_cancels_a_ray_batch_and_lists_what_did_not_finish(tmp_path, interrupted_slam):
     pytest.importorskip("ray")
     long = tmp_path / "long.bag"
     simulate(long, "ros1", frames=200)
     out = tmp_path / "out"
-    command = [sys.executable, "-m", "pipelines.cli.slam", str(long), str(long), "--workers", "2", "--out", str(out)]
-    process = subprocess.Popen(
-        [*command, "--quiet"],
-        cwd=Path(__file__).resolve().parents[2],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
-    deadline = time.monotonic() + 120
-    while not list(out.glob("long*/2*")) and time.monotonic() < deadline:  # a task has started its run
-        time.sleep(0.1)
-    os.killpg(process.pid, signal.SIGINT)  # as a terminal does: to the whole process group
-    _, stderr = process.communicate(timeout=120)
-    assert process.returncode == 130, stderr
+    arguments = [str(long), str(long), "--workers", "2", "--out", str(out), "--quiet"]
+    returncode, stderr = interrupted_slam(arguments, lambda: bool(list(out.glob("long*/2*"))), wait=120)  # a task runs
+    assert returncode == 130, stderr
     assert "Traceback" not in stderr and stderr.strip().splitlines()[-1] == "sandro-slam: aborted"
     assert [row["status"] for row in _summary(out)] == ["cancelled", "cancelled"]

@@ -1,11 +1,6 @@
 """`sandro-slam`: a bag in, a results folder out; bad input gets one line and a non-zero exit."""
 
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -153,23 +148,14 @@ def test_ground_truth_from_another_time(bag, tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_ctrl_c_stops_and_still_writes_the_results(bag, tmp_path):
+def test_ctrl_c_stops_and_still_writes_the_results(bag, tmp_path, interrupted_slam):
     out = tmp_path / "r"
-    process = subprocess.Popen(
-        [sys.executable, "-m", "pipelines.cli.slam", str(bag), "--out", str(out), "--quiet"],
-        cwd=Path(__file__).resolve().parents[3],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
-    deadline = time.monotonic() + 60
-    while not (out.is_dir() and any(out.iterdir())) and time.monotonic() < deadline:  # the run folder: processing
-        time.sleep(0.05)
-    time.sleep(0.5)
-    os.killpg(process.pid, signal.SIGINT)  # as a terminal does: to the whole process group
-    stdout, stderr = process.communicate(timeout=120)
-    assert process.returncode == 0, stderr
+
+    def processing() -> bool:  # the run folder exists
+        return out.is_dir() and any(out.iterdir())
+
+    returncode, stderr = interrupted_slam([str(bag), "--out", str(out), "--quiet"], processing, wait=60, settle=0.5)
+    assert returncode == 0, stderr
     assert "Traceback" not in stderr and "stopping after this scan" in stderr
     metrics = json.loads((out / "latest" / "metrics.json").read_text())
     assert metrics["interrupted"] and 0 < metrics["frames"] < FRAMES
