@@ -18,7 +18,6 @@ from gtsam.symbol_shorthand import X
 from pipelines.simulation import simulate_sequence
 from pipelines.simulation.drift import drifted
 from sandro_slam import LoopCloser, LoopClosure, SlamConfig, check_loops
-from sandro_slam.config import KeyframeConfig
 from sandro_slam.keyframes import KeyframeBuilder
 
 GPS_EVERY = 20  # keyframes (200 m)
@@ -44,7 +43,7 @@ def keyframes(frames: int = 805, drift: float = 0.005, seed: int = 0) -> list[tu
     scans = [sequence.deskewed(index) for index in range(len(sequence))]
     truth = np.array([T for _, T in scans])
     odometry = drifted(truth, drift)
-    builder = KeyframeBuilder(KeyframeConfig())
+    builder = KeyframeBuilder(SlamConfig().resolved().keyframes)  # street-scale lengths: a city drive
     completed = [builder.add_scan(i, odometry[i], scan.points) for i, (scan, _) in enumerate(scans)]
     completed = [keyframe for keyframe in completed + [builder.flush()] if keyframe is not None]
     return [(kf.key, truth[kf.first_frame], odometry[kf.first_frame], kf.points) for kf in completed]

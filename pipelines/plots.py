@@ -72,8 +72,8 @@ def plot_trajectories(
     """Top view of estimated trajectories, each SE3-aligned to the ground truth `truth` (all (F, 4, 4) at
     `times` [s]), and their position errors over time."""
     fig, (ax, errors) = plt.subplots(1, 2, figsize=(14, 6), gridspec_kw={"width_ratios": [3, 2]})
-    ax.plot(truth[:, 0, 3], truth[:, 1, 3], label="ground truth", lw=2.5, alpha=0.4)
-    for name, poses in estimates.items():
+    ax.plot(truth[:, 0, 3], truth[:, 1, 3], label="ground truth", color="0.6", lw=2.5, alpha=0.5)
+    for name, poses in estimates.items():  # colours C0, C1, ... as in the error panel
         aligned = align_se3(poses, truth) @ poses
         ax.plot(aligned[:, 0, 3], aligned[:, 1, 3], label=name, lw=1.2, alpha=0.9)
     draw_errors(errors, times - times[0], truth, estimates)
@@ -105,6 +105,27 @@ def draw_errors(
     ax.set_xlabel("time [s]")
     ax.set_ylabel("position error after SE3 alignment [m]")
     ax.legend(loc="upper left")
+
+
+def plot_suite(path: Path, rows: list[dict]) -> None:
+    """The evaluation suite at a glance: ATE [m] per sequence and method (log scale; rows hold `ate_<method>`),
+    and frames/s per sequence of the pipelines (`fps_<pipeline>`)."""
+    names = [row["sequence"] for row in rows]
+    methods = [key[4:] for key in dict.fromkeys(k for row in rows for k in row) if key.startswith("ate_")]
+    pipelines = [key[4:] for key in dict.fromkeys(k for row in rows for k in row) if key.startswith("fps_")]
+    x = np.arange(len(rows))
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(max(10.0, 0.9 * len(rows) + 4.0), 9), sharex=True)
+    for axis, keys, prefix, label in ((top, methods, "ate_", "ATE [m]"), (bottom, pipelines, "fps_", "frames/s")):
+        width = 0.8 / max(1, len(keys))
+        for k, key in enumerate(keys):
+            values = [row.get(prefix + key, np.nan) for row in rows]
+            axis.bar(x + (k - 0.5 * (len(keys) - 1)) * width, values, width, label=key.replace("_", " "))
+        axis.set_ylabel(label)
+        axis.legend(loc="best", fontsize=8)
+        axis.grid(axis="y", alpha=0.3)
+    top.set_yscale("log")
+    bottom.set_xticks(x, names, rotation=40, ha="right")
+    save_figure(fig, path)
 
 
 def plot_merges(path: Path, merges: dict[str, MergeResult]) -> None:

@@ -67,7 +67,15 @@ def run_input(
         start = time.perf_counter()
         try:
             with stop:
-                result = OfflineSlam(config).run(stop.until_requested(frames), odometry=given)
+                slam = OfflineSlam(config)
+                result = slam.run(stop.until_requested(frames), odometry=given)
+                if result.config.refine and not stop.requested:
+                    again = _timed(itertools.islice(source.scans, total), reading)
+                    try:
+                        result = slam.refine(stop.until_requested(again), result, progress)
+                    except ValueError:
+                        if not stop.requested:
+                            raise  # a scan that cannot be read again; stopped: the first pass is written
             wall = time.perf_counter() - start
             metrics = {
                 **source.description, "odometry": "given" if given else "kiss-icp", "interrupted": stop.requested,
@@ -80,7 +88,7 @@ def run_input(
         except BaseException:
             folder.rmdir()  # nothing written yet
             raise
-    write_results(folder, result, config, metrics, truth, map_voxel)
+    write_results(folder, result, result.config, metrics, truth, map_voxel)
     link_latest(folder)
     return folder, metrics
 

@@ -72,7 +72,12 @@ class PlaceRecognition:
             from map_closures.config import MapClosuresConfig
             from map_closures.map_closures import MapClosures
 
-            self._closures = MapClosures(MapClosuresConfig(inliers_threshold=self.config.map_closures_min_inliers))
+            self._closures = MapClosures(
+                MapClosuresConfig(
+                    density_map_resolution=self.config.map_closures_resolution,
+                    inliers_threshold=self.config.map_closures_min_inliers,
+                )
+            )
             for map_id, points in self._seen.values():
                 self._closures.get_closures(map_id, self._density_map_points(points))
         return self._closures

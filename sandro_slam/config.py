@@ -2,41 +2,53 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from kiss_icp.config.parser import KISSConfig
-from pydantic import Field, model_validator
+from pydantic import BaseModel, Field
 
 from sandro_core.config import SandroConfig, StrictModel, YamlConfig
+
+REFERENCE_ODOMETRY_VOXEL = 1.0  # [m] KISS-ICP's voxel at scale 1 (its own default: max_range / 100 at 100 m)
+REFERENCE_NOISE_BOUND = 1.0  # [m] SANDRO's inlier bound for submap registration at scale 1
+
+
+def scaled(reference: float, description: str, zero_allowed: bool = False) -> Any:
+    """A length [m] that follows the scene: None (the default) means `reference` x `SlamConfig.scale`."""
+    return Field(
+        None,
+        **({"ge": 0.0} if zero_allowed else {"gt": 0.0}),
+        description=f"{description} (None: {reference:g} x scale)",
+        json_schema_extra={"reference": reference},
+    )
 
 
 class KeyframeConfig(StrictModel):
     """When a new keyframe starts, and what its submap holds."""
 
-    distance: float = Field(10.0, gt=0.0, description="travel [m] that starts a new keyframe")
+    distance: float | None = scaled(10.0, "travel [m] that starts a new keyframe")
     angle_deg: float = Field(30.0, gt=0.0, description="rotation [deg] that starts a new keyframe")
-    # 0.5 m: as fine as registration uses (the ICP source is voxelised at 0.5 m, FPFH keypoints are coarser).
-    submap_voxel: float = Field(0.5, gt=0.0, description="voxel size [m] of the stored submap")
-    submap_radius: float = Field(30.0, gt=0.0, description="submap points farther than this [m] are dropped")
+    # As fine as registration uses (the ICP source is voxelised as finely, FPFH keypoints are coarser).
+    submap_voxel: float | None = scaled(0.5, "voxel size [m] of the stored submap")
+    submap_radius: float | None = scaled(30.0, "submap points farther than this [m] are dropped")
 
 
 class LoopDetectionConfig(StrictModel):
     """Which keyframe pairs are tried as loop closures, and where that work runs."""
 
-    radius: float = Field(25.0, gt=0.0, description="candidates within this distance [m] of the new keyframe")
-    exclude_recent: float = Field(50.0, ge=0.0, description="skip keyframes fewer than this many metres back")
+    radius: float | None = scaled(25.0, "candidates within this distance [m] of the new keyframe")
+    exclude_recent: float | None = scaled(50.0, "skip keyframes fewer than this many metres back", True)
     max_candidates: int = Field(2, ge=1, description="nearest candidates registered per keyframe")
     max_loops_per_keyframe: int = Field(2, ge=1, description="stop registering candidates after this many loops")
     use_map_closures: bool = Field(True, description="add MapClosures place-recognition candidates")
     map_closures_min_inliers: int = Field(5, ge=1, description="ORB inliers a MapClosures candidate needs")
-    map_closures_radius: float = Field(
-        30.0, gt=0.0, description="submap points within this range [m] form its density map"
-    )
-    map_closures_spacing: float = Field(
+    map_closures_radius: float | None = scaled(30.0, "submap points within this range [m] form its density map")
+    map_closures_resolution: float | None = scaled(0.5, "pixel size [m] of the MapClosures density maps")
+    map_closures_spacing: float | None = scaled(
         15.0,
-        ge=0.0,
-        description="MapClosures sees a keyframe only this far [m] along the path from the last one it "
-        "saw (its density maps span 2 x map_closures_radius)",
+        "MapClosures sees a keyframe only this far [m] along the path from the last one it saw (its density maps "
+        "span 2 x map_closures_radius)",
+        True,
     )
     in_background: bool = Field(
         True,
@@ -48,13 +60,16 @@ class LoopDetectionConfig(StrictModel):
 class LoopRegistrationConfig(StrictModel):
     """Registration and verification of one candidate pair of submaps."""
 
-    fpfh_voxel: float = Field(1.25, gt=0.0, description="voxel [m] of the FPFH keypoints")
+    fpfh_voxel: float | None = scaled(1.25, "voxel [m] of the FPFH keypoints")
     fpfh_max_nn: int = Field(50, ge=1, description="neighbours per FPFH descriptor (its cost grows linearly with it)")
-    sandro: SandroConfig = Field(default_factory=lambda: SandroConfig(noise_bound=1.0))
+    sandro: SandroConfig = Field(
+        default_factory=SandroConfig,
+        description=f"the solver; its noise_bound None means {REFERENCE_NOISE_BOUND:g} m x scale here",
+    )
     icp_refine: bool = Field(True, description="point-to-plane ICP from the SANDRO transform")
-    icp_max_distance: float = Field(1.0, gt=0.0, description="ICP correspondence distance [m]")
-    icp_voxel: float = Field(
-        0.5, gt=0.0, description="voxel [m] of the source submap points ICP aligns onto the target's keypoints"
+    icp_max_distance: float | None = scaled(1.0, "ICP correspondence distance [m]")
+    icp_voxel: float | None = scaled(
+        0.5, "voxel [m] of the source submap points ICP aligns onto the target's keypoints"
     )
     min_inliers: int = Field(20, ge=3, description="SANDRO inliers a loop needs")
     min_overlap: float = Field(
@@ -94,16 +109,16 @@ class MergeConfig(StrictModel):
     max_candidate_pairs: int = Field(
         60, ge=1, description="place-recognition pairs registered per pair of sessions, best first"
     )
-    descriptor_radius: float = Field(30.0, gt=0.0, description="radius [m] of the ring-key place descriptor")
-    consistency_translation: float = Field(
-        1.0, gt=0.0, description="two loops agree when their session transforms move keyframes less than this [m]"
+    descriptor_radius: float | None = scaled(30.0, "radius [m] of the ring-key place descriptor")
+    consistency_translation: float | None = scaled(
+        1.0, "two loops agree when their session transforms move keyframes less than this [m]"
     )
     consistency_rotation_deg: float = Field(2.0, gt=0.0, description="... and differ by less than this [deg]")
     min_loops: int = Field(
         3, ge=1, description="agreeing inter-session loops, kept by the robust back end, that join two sessions"
     )
-    guided_radius: float = Field(
-        10.0, ge=0.0, description="once aligned, register keyframe pairs this close [m] (0: no guided search)"
+    guided_radius: float | None = scaled(
+        10.0, "once aligned, register keyframe pairs this close [m] (0: no guided search)", True
     )
     max_free_space_conflict: float = Field(
         0.03,
@@ -112,24 +127,69 @@ class MergeConfig(StrictModel):
         description="refuse a voted alignment whose agreeing loops put a median share above this of the submap "
         "keypoints where the other session saw free space (an aliased place; docs/merge.md)",
     )
-    free_space_voxel: float = Field(0.5, gt=0.0, description="voxel [m] of the free-space test")
+    free_space_voxel: float | None = scaled(0.5, "voxel [m] of the free-space test")
     conflict_loops: int = Field(12, ge=1, description="agreeing loops (most inliers first) the free-space test checks")
-    map_voxel: float = Field(0.5, gt=0.0, description="voxel [m] of the merged map sandro-merge writes")
+    map_voxel: float | None = scaled(0.5, "voxel [m] of the merged map sandro-merge writes")
 
 
 class SlamConfig(YamlConfig):
-    """Everything `OfflineSlam` and `LoopClosureModule` need; `odometry` is KISS-ICP's own config."""
+    """Everything `OfflineSlam` and `LoopClosureModule` need; `odometry` is KISS-ICP's own config.
 
-    odometry: KISSConfig = Field(default_factory=KISSConfig)
+    Lengths left None follow the scene: `resolved(scale)` sets each to its reference value (for street-scale
+    outdoor scenes) times `scale`; `OfflineSlam` measures the scale from the first scans (`scene_scale`) unless
+    `scale` is set. Lengths set explicitly are used as they are.
+    """
+
+    scale: float | None = Field(
+        None,
+        gt=0.0,
+        description="length scale of the scene (1: streets, ~0.2: rooms) for the lengths left None; None: "
+        "measured from the first scans",
+    )
+    odometry: KISSConfig = Field(
+        default_factory=KISSConfig,
+        description=f"KISS-ICP's config; its mapping.voxel_size None means {REFERENCE_ODOMETRY_VOXEL:g} m x scale",
+    )
     keyframes: KeyframeConfig = Field(default_factory=KeyframeConfig)
     loops: LoopDetectionConfig = Field(default_factory=LoopDetectionConfig)
     registration: LoopRegistrationConfig = Field(default_factory=LoopRegistrationConfig)
     graph: GraphConfig = Field(default_factory=GraphConfig)
     merge: MergeConfig = Field(default_factory=MergeConfig)
+    refine: bool = Field(
+        False,
+        description="sandro-slam: a second pass after the first, every scan deskewed again and registered onto the "
+        "map of the loop-corrected submaps (`OfflineSlam.refine`)",
+    )
 
-    @model_validator(mode="after")
-    def _odometry_voxel(self) -> SlamConfig:
-        # KISS-ICP's own default: a voxel of max_range / 100 (KISSConfig() alone leaves it None).
-        if self.odometry.mapping.voxel_size is None:
-            self.odometry.mapping.voxel_size = self.odometry.data.max_range / 100.0
-        return self
+    @property
+    def is_resolved(self) -> bool:
+        """Whether every length has a value (`resolved` has been applied or every length was set)."""
+        return self.scale is not None and not _unset_lengths(self)
+
+    def resolved(self, scale: float | None = None) -> SlamConfig:
+        """A copy with `scale` set (the argument, else `self.scale`, else 1) and every length left None set to its
+        reference value times that scale."""
+        scale = float(scale if scale is not None else self.scale if self.scale is not None else 1.0)
+        config = self.model_copy(deep=True)
+        config.scale = scale
+        for model, name, reference in _unset_lengths(config):
+            setattr(model, name, reference * scale)
+        return config
+
+
+def _unset_lengths(config: BaseModel) -> list[tuple[BaseModel, str, float]]:
+    """(section, field name, reference value) of every scaled length (see `scaled`) left None, in every section;
+    also the odometry voxel and SANDRO's noise bound."""
+    unset = []
+    for name, field in type(config).model_fields.items():
+        value = getattr(config, name)
+        if isinstance(value, BaseModel):
+            unset += _unset_lengths(value)
+        elif value is None and isinstance(field.json_schema_extra, dict) and "reference" in field.json_schema_extra:
+            unset.append((config, name, field.json_schema_extra["reference"]))
+    if isinstance(config, SlamConfig):
+        if config.odometry.mapping.voxel_size is None:
+            unset.append((config.odometry.mapping, "voxel_size", REFERENCE_ODOMETRY_VOXEL))
+        if config.registration.sandro.noise_bound is None:
+            unset.append((config.registration.sandro, "noise_bound", REFERENCE_NOISE_BOUND))
+    return unset

@@ -50,10 +50,13 @@ class LoopCloser:
     The host adds its keyframes (its own keys, its current pose estimates, the submaps) and gets back verified
     loops, each ready to add to its own graph with `LoopClosure.between_factor`. After the host optimises, it hands
     its new estimates back with `update_estimates`: they steer the search for candidates nearby.
+
+    Lengths the configuration leaves None take `config.scale` (1, street scale, when unset): for other scenes pass
+    `config.resolved(scene_scale(first_scans))`.
     """
 
     def __init__(self, config: SlamConfig | None = None):
-        self.config = config or SlamConfig()
+        self.config = (config or SlamConfig()).resolved()
         self.attempts = 0  # candidate pairs registered
         self._submaps: dict[int, np.ndarray] = {}  # keyframe submaps (points in the keyframe frame) by key
         self._descriptions: dict[int, SubmapDescription] = {}  # of the submaps, made once each
@@ -139,10 +142,10 @@ class LoopCloser:
 class LoopClosureModule:
     """A LoopCloser with a pose graph of its own: each keyframe enters the graph with an odometry factor, each
     verified loop as a BetweenFactorPose3 with the covariance from SANDRO's final weights, and the robust back end
-    decides which loops to keep."""
+    decides which loops to keep. Lengths the configuration leaves None: as `LoopCloser`."""
 
     def __init__(self, config: SlamConfig | None = None):
-        self.config = config or SlamConfig()
+        self.config = (config or SlamConfig()).resolved()
         self.closer = LoopCloser(self.config)
         self.pose_graph = PoseGraph(self.config.graph)
         self.loops: list[LoopClosure] = []

@@ -33,7 +33,13 @@ class ScanOdometry(KissICP):
 class KissIcpOdometry:
     """KISS-ICP over the scans (deskewed with their per-point times when they have them). The scans of the first
     two keyframe distances are held back until the start is re-registered (`reregister_start`); later poses get
-    the same correction."""
+    the same correction.
+
+    KISS-ICP deskews a scan with the motion between its last two poses, which it does not have for its first two
+    scans: a drive that starts in motion would leave them, and the first keyframe's submap, bent by a sweep's
+    worth of motion. The held scans are therefore deskewed again with the motion of their re-registered poses,
+    registered again, and the submaps take them as deskewed then.
+    """
 
     def __init__(self, config: SlamConfig):
         self.config = config
@@ -41,6 +47,7 @@ class KissIcpOdometry:
         # The scan as the submaps take it: KISS-ICP's own voxelisation when that is fine enough.
         self._own_scan = config.keyframes.submap_voxel >= 0.5 * config.odometry.mapping.voxel_size
         self._held: list[OdometryPose] = []
+        self._held_raw: list[Scan] = []  # the held scans as they came, to deskew them again
         self._correction: np.ndarray | None = None  # KISS-ICP's frame -> the re-registered start's, once known
         self.unmatched: list[int] = []  # scans without a pose: none, KISS-ICP gives every scan one
 
@@ -48,13 +55,13 @@ class KissIcpOdometry:
         """Register a scan with finite points; the poses that are final now (none while the start is held)."""
         deskewed, _ = self.kiss_icp.register_frame(scan.points, scan.times)
         pose = self.kiss_icp.last_pose.copy()
-        deskews = len(scan.times) > 0 and self.config.odometry.data.deskew
-        stamp = scan.timestamp + (float(scan.times.max()) if deskews else 0.0)  # KISS-ICP deskews to the last point
-        voxel = self.config.keyframes.submap_voxel
-        points = self.kiss_icp.map_points if self._own_scan else voxel_downsample(deskewed, voxel)
+        stamp = scan.timestamp + (float(scan.times.max()) if self._deskews(scan) else 0.0)  # KISS-ICP deskews to
+        # the last point
+        points = self.kiss_icp.map_points if self._own_scan else self._submap_points(deskewed)
         if self._correction is not None:
             return [(stamp, self._correction @ pose, points)]
         self._held.append((stamp, pose, points))
+        self._held_raw.append(scan)
         held_poses = np.array([held[1] for held in self._held])
         if len(self._held) >= MAX_HELD_SCANS or path_length(held_poses)[-1] >= 2.0 * self.config.keyframes.distance:
             return self._release_start()
@@ -66,10 +73,30 @@ class KissIcpOdometry:
 
     def _release_start(self) -> list[OdometryPose]:
         stamps, poses, scans = zip(*self._held)
-        fixed = reregister_start(self.kiss_icp, np.asarray(poses), list(scans), self.config.keyframes.distance)
+        poses = np.asarray(poses)
+        distance = self.config.keyframes.distance
+        fixed = reregister_start(self.kiss_icp, poses, list(scans), distance)
+        if all(self._deskews(scan) for scan in self._held_raw) and len(poses) > 1:
+            scans = self._deskewed_again(fixed)
+            fixed = reregister_start(self.kiss_icp, poses, scans, distance)
+            scans = self._deskewed_again(fixed)
         self._correction = fixed[-1] @ np.linalg.inv(poses[-1])
-        self._held = []
+        self._held, self._held_raw = [], []
         return list(zip(stamps, fixed, scans))
+
+    def _deskewed_again(self, poses: np.ndarray) -> list[np.ndarray]:
+        """The held scans deskewed with the motion between consecutive `poses` (the first with the second's), as
+        the submaps take them."""
+        motions = [np.linalg.inv(a) @ b for a, b in zip(poses[:-1], poses[1:])]
+        preprocess = self.kiss_icp.preprocessor.preprocess
+        deskewed = [preprocess(s.points, s.times, m) for s, m in zip(self._held_raw, [motions[0], *motions])]
+        return [self.kiss_icp.voxelize(d)[1] if self._own_scan else self._submap_points(d) for d in deskewed]
+
+    def _submap_points(self, deskewed: np.ndarray) -> np.ndarray:
+        return voxel_downsample(deskewed, self.config.keyframes.submap_voxel)
+
+    def _deskews(self, scan: Scan) -> bool:
+        return len(scan.times) > 0 and self.config.odometry.data.deskew
 
 
 @dataclass(frozen=True)

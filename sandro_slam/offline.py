@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import itertools
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import gtsam
 import numpy as np
@@ -16,7 +17,9 @@ from sandro_slam.frontend import Frontend
 from sandro_slam.keyframes import Keyframe
 from sandro_slam.module import LoopClosure, LoopClosureModule
 from sandro_slam.odometry import GivenPoses
+from sandro_slam.refine import refine_poses
 from sandro_slam.scan import Scan, as_scan
+from sandro_slam.scene_scale import SCANS, scene_scale
 from sandro_slam.timing import Stopwatch
 
 
@@ -38,6 +41,7 @@ class SlamResult:
     rejected_loops: list[LoopClosure]
     skipped_frames: list[int]  # input frames without any finite point, or without a given odometry pose
     odometry_noise_scale: float  # on the odometry covariances in the final optimisation (1: as configured)
+    config: SlamConfig  # the configuration used, every length resolved (`SlamConfig.resolved`)
     timings: dict[str, float] = field(default_factory=dict)  # wall seconds: odometry, loop_closure (in this
     # process), optimization (with `loops.in_background`: also the wait for the worker), total; and the
     # worker's loop_closure_worker_cpu (CPU seconds) when it ran
@@ -53,12 +57,12 @@ class SlamResult:
 
 
 class OfflineSlam:
-    """Runs the whole pipeline over scans; `module` is the LoopClosureModule it drives, so that a caller can
-    add factors and re-optimise."""
+    """Runs the whole pipeline over scans; `module` is the LoopClosureModule it drives (made by `run` when the
+    configuration leaves lengths to the scene's scale), so that a caller can add factors and re-optimise."""
 
     def __init__(self, config: SlamConfig | None = None):
         self.config = config or SlamConfig()
-        self.module = LoopClosureModule(self.config)
+        self.module = LoopClosureModule(self.config) if self.config.is_resolved else None
 
     def run(
         self, frames: Iterable[Scan | Sequence], progress: bool = False, odometry: GivenPoses | None = None
@@ -73,17 +77,27 @@ class OfflineSlam:
         odometry (`BackgroundLoopClosure`) and is replaced by what the worker returns, with the same content.
         """
         start = time.perf_counter()
-        policy = self.config.graph.estimate_odometry_noise
+        scans = (
+            (index, _finite(as_scan(frame, index))) for index, frame in enumerate(_with_progress(frames, progress))
+        )
+        head = [] if self.config.is_resolved else _first_scans(scans)
+        if head:
+            data = self.config.odometry.data
+            scale = scene_scale([scan.points for _, scan in head if scan is not None], data.min_range, data.max_range)
+            self.module = LoopClosureModule(self.config.resolved(scale))
+        elif self.module is None:
+            self.module = LoopClosureModule(self.config.resolved())  # no scan at all
+        config = self.module.config
+        policy = config.graph.estimate_odometry_noise
         self.module.estimate_odometry_noise = policy == "always" or (
             policy == "given_odometry" and odometry is not None
         )
-        in_background = self.config.loops.in_background and usable_cores() > 1
+        in_background = config.loops.in_background and usable_cores() > 1
         with BackgroundLoopClosure(self.module) if in_background else nullcontext() as background:
             stopwatch = Stopwatch("odometry", "loop_closure", "optimization")
-            frontend = Frontend(self.config, background or self.module, stopwatch, odometry)
+            frontend = Frontend(config, background or self.module, stopwatch, odometry)
             skipped, added = [], []  # indices of the input frames
-            for index, frame in enumerate(_with_progress(frames, progress)):
-                scan = _finite(as_scan(frame, index))
+            for index, scan in itertools.chain(head, scans):
                 if scan is None:
                     skipped.append(index)
                 else:
@@ -99,6 +113,26 @@ class OfflineSlam:
                     self.module, keyframe_poses, timings["loop_closure_worker_cpu"] = background.finish()
         timings["total"] = time.perf_counter() - start
         return self._result(frontend, keyframe_poses, skipped, timings)
+
+    def refine(self, frames: Iterable[Scan | Sequence], result: SlamResult, progress: bool = False) -> SlamResult:
+        """The second pass (`refine.refine_poses`): `result` with every frame's pose refined against the map of its
+        loop-corrected submaps. `frames` are those `run` made `result` from, read again (skipped ones included);
+        the keyframes, their poses, the graph and the loops stay as the first pass left them. Adds
+        timings["refine"] (and to "total")."""
+        start = time.perf_counter()
+        skipped = set(result.skipped_frames)
+        used = (
+            scan
+            for index, frame in enumerate(_with_progress(frames, progress, "refine"))
+            if index not in skipped and (scan := _finite(as_scan(frame, index))) is not None
+        )
+        poses = refine_poses(
+            itertools.islice(used, len(result.poses)), result.poses, result.keyframes, result.keyframe_poses,
+            result.config,
+        )  # fmt: skip
+        seconds = time.perf_counter() - start
+        timings = {**result.timings, "refine": seconds, "total": result.timings["total"] + seconds}
+        return replace(result, poses=poses, timings=timings)
 
     def _result(
         self, frontend: Frontend, keyframe_poses: dict[int, np.ndarray], skipped: list[int], timings: dict[str, float]
@@ -116,18 +150,29 @@ class OfflineSlam:
             rejected_loops=self.module.rejected_loops(),
             skipped_frames=skipped,
             odometry_noise_scale=self.module.pose_graph.odometry_scale,
+            config=self.module.config,
             timings=timings,
         )
         result.poses = result.frame_poses(keyframe_poses)
         return result
 
 
-def _with_progress(frames: Iterable, progress: bool) -> Iterable:
+def _with_progress(frames: Iterable, progress: bool, desc: str = "sandro-slam") -> Iterable:
     if not progress:
         return frames
     from tqdm import tqdm
 
-    return tqdm(frames, unit="frame", desc="sandro-slam")
+    return tqdm(frames, unit="frame", desc=desc)
+
+
+def _first_scans(scans: Iterator[tuple[int, Scan | None]]) -> list[tuple[int, Scan | None]]:
+    """Items of `scans` up to the SCANS-th that has points (all of them if fewer)."""
+    head = []
+    for item in scans:
+        head.append(item)
+        if sum(scan is not None for _, scan in head) >= SCANS:
+            break
+    return head
 
 
 def _finite(scan: Scan) -> Scan | None:

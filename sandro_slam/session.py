@@ -43,6 +43,7 @@ class Session:
     timestamps: np.ndarray  # (F,) [s]
     keyframe_of_frame: np.ndarray  # (F,) keyframe key of each frame
     T_keyframe_frame: np.ndarray  # (F, 4, 4) each frame's odometry pose relative to its keyframe
+    scale: float | None = None  # the scene scale its configuration used (`SlamConfig.scale`), when known
 
     @classmethod
     def from_result(cls, result: SlamResult, name: str) -> Session:
@@ -82,6 +83,7 @@ class Session:
             result.timestamps.copy(),
             result.keyframe_of_frame.astype(np.int64),
             T_keyframe_frame,
+            result.config.scale,
         )
 
     def frame_poses(self, keyframe_poses: dict[int, np.ndarray] | None = None) -> np.ndarray:
@@ -101,6 +103,7 @@ class Session:
             self.timestamps,
             self.keyframe_of_frame,
             self.T_keyframe_frame,
+            self.scale,
         )
 
     def check(self) -> None:

@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
             fps["kiss_slam"].append(n / seconds)
             ates["kiss_slam"].append(ate(kiss_poses, truth))
         print(f"KISS-ICP alone on the same frames (run {repeat + 1}) ...", flush=True)
-        fps["kiss_icp"].append(n / kiss_icp_seconds(frames, config))
+        fps["kiss_icp"].append(n / kiss_icp_seconds(frames, result.config))
     metrics = {
         "frames": n,
         "keyframes": len(result.keyframes),
@@ -184,23 +184,16 @@ def keyframe_floor(result: SlamResult, truth: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.concatenate(squared))))
 
 
-def loops_against_truth(result: SlamResult, truth: np.ndarray) -> dict[str, float]:
+def loops_against_truth(
+    result: SlamResult, truth: np.ndarray, wrong_m: float = WRONG_LOOP_M, wrong_deg: float = WRONG_LOOP_DEG
+) -> dict[str, float]:
     """The verified loops against the true relative poses of their keyframes (`truth`: (F, 4, 4) at the
-    result's frames): median errors, the wrong ones (beyond WRONG_LOOP_M or WRONG_LOOP_DEG) and how many of
+    result's frames): median errors, the wrong ones (beyond `wrong_m` [m] or `wrong_deg` [deg]) and how many of
     them, and of the real ones, the back end rejected."""
     if not result.loops:
         return {"loops_wrong": 0}
-    first_frame = {keyframe.key: keyframe.first_frame for keyframe in result.keyframes}
-    errors = np.array(
-        [
-            pose_errors(
-                loop.T_target_source,
-                np.linalg.inv(truth[first_frame[loop.target_key]]) @ truth[first_frame[loop.source_key]],
-            )
-            for loop in result.loops
-        ]
-    )
-    wrong = (errors[:, 1] > WRONG_LOOP_M) | (errors[:, 0] > WRONG_LOOP_DEG)
+    errors = loop_errors(result, truth)
+    wrong = (errors[:, 1] > wrong_m) | (errors[:, 0] > wrong_deg)
     rejected = np.array([loop.weight < 0.5 for loop in result.loops])
     median_deg, median_m = np.median(errors[~wrong], axis=0) if (~wrong).any() else (np.nan, np.nan)
     return {
@@ -210,6 +203,21 @@ def loops_against_truth(result: SlamResult, truth: np.ndarray) -> dict[str, floa
         "loops_wrong_rejected": int((wrong & rejected).sum()),
         "loops_real_rejected": int((~wrong & rejected).sum()),
     }
+
+
+def loop_errors(result: SlamResult, truth: np.ndarray) -> np.ndarray:
+    """(L, 2) [deg, m]: each verified loop's error against the true relative pose of its keyframes (`truth`:
+    (F, 4, 4) at the result's frames)."""
+    first_frame = {keyframe.key: keyframe.first_frame for keyframe in result.keyframes}
+    return np.array(
+        [
+            pose_errors(
+                loop.T_target_source,
+                np.linalg.inv(truth[first_frame[loop.target_key]]) @ truth[first_frame[loop.source_key]],
+            )
+            for loop in result.loops
+        ]
+    ).reshape(-1, 2)
 
 
 def false_loop_experiment(

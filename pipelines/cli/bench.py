@@ -17,6 +17,7 @@ BENCHMARKS = {  # subcommand -> module with add_arguments(parser) and run(args) 
     "posegraph": "pipelines.bench.posegraph",
     "merge": "pipelines.bench.merge",
     "batch": "pipelines.bench.batch",
+    "suite": "pipelines.bench.suite",
 }
 
 

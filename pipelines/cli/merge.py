@@ -71,7 +71,7 @@ def _run(args: argparse.Namespace) -> int:
     from pipelines.io.atomic import atomic_dir
     from pipelines.io.merge_results import write_merge
     from sandro_slam import SlamConfig, merge_sessions
-    from sandro_slam.merge.pipeline import serial_map
+    from sandro_slam.merge.pipeline import merge_config, serial_map
 
     config = SlamConfig.load(args.config)
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -81,6 +81,7 @@ def _run(args: argparse.Namespace) -> int:
         with ray_session(args.workers, args.ray, threads, warm_up=True) if parallel else nullcontext():
             sessions = [_load_session(path, out / "sessions", config, args.topic) for path in args.sessions]
             _unique_names(sessions)
+            config = merge_config(config, sessions)
             result = merge_sessions(sessions, config, partial(ray_map, threads=threads) if parallel else serial_map)
         if not result.ok:
             refused = "; ".join(f"{name}: {why}" for name, why in result.refused.items())

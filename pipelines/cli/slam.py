@@ -54,6 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"base results folder (default {DEFAULT_OUT})")
     parser.add_argument("--gt", help="ground truth: TUM (matched by time) or KITTI (one pose per scan)")
     parser.add_argument("--max-frames", type=int, help="process at most this many scans")
+    parser.add_argument("--refine", action=argparse.BooleanOptionalAction, help="a second pass: every scan "
+                        "deskewed again, registered onto the loop-corrected map (default: the config's)")  # fmt: skip
     parser.add_argument("--map-voxel", type=float, default=0.2, help="voxel size of map.ply [m] (default 0.2)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     batch = parser.add_argument_group("batch (several inputs)")
@@ -86,6 +88,8 @@ def _run(args: argparse.Namespace) -> int:
     from sandro_slam import SlamConfig
 
     config = SlamConfig.load(args.config)
+    if args.refine is not None:
+        config.refine = args.refine
     if len(args.input) > 1 or args.workers is not None or args.ray is not None or args.resume:
         return _run_batch(args, config)
     from pipelines.io.trajectory import read_trajectory

@@ -40,7 +40,13 @@ def save_session(folder: Path, session: Session) -> None:
     with atomic_dir(folder / "session") as out:
         out.mkdir()
         (out / "submaps").mkdir()
-        meta = {"format": FORMAT, "version": VERSION, "name": session.name, "keys": session.keys}
+        meta = {
+            "format": FORMAT,
+            "version": VERSION,
+            "name": session.name,
+            "keys": session.keys,
+            "scale": session.scale,
+        }
         (out / "session.json").write_text(json.dumps(meta, indent=1))
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         for key in session.keys:
@@ -107,6 +113,7 @@ def read_session(results_folder: Path) -> Session:
         frames[:, 0].copy(),
         frames[:, 1].astype(np.int64),
         T,
+        meta.get("scale"),
     )
     session.check()
     return session

@@ -4,21 +4,27 @@
 LiDAR driving through a city of repeated and mirror-symmetric blocks; see `sequence` for the conventions.
 """
 
-from pipelines.simulation.sensor import SpinningLidar
-from pipelines.simulation.sequence import SimulatedSequence, simulate_sequence
-from pipelines.simulation.trajectory import Route, Trajectory
+from pipelines.simulation.sensor import PRESETS, Lidar, RosetteLidar, SpinningLidar, ZigzagLidar
+from pipelines.simulation.sequence import SimulatedSequence, make_sequence, simulate_sequence
+from pipelines.simulation.trajectory import PolylineRoute, Route, Trajectory
 from pipelines.simulation.world import CityLayout, World, build_city
 
 VERSION = 2  # bumped whenever the same arguments simulate different data (the demo's bag cache is keyed on it)
 
 __all__ = [
+    "PRESETS",
     "CityLayout",
+    "Lidar",
+    "PolylineRoute",
+    "RosetteLidar",
     "Route",
     "SimulatedSequence",
     "SpinningLidar",
     "Trajectory",
     "VERSION",
     "World",
+    "ZigzagLidar",
     "build_city",
+    "make_sequence",
     "simulate_sequence",
 ]

@@ -3,6 +3,7 @@
 Time convention (all times in seconds):
 - Frame i (a `sandro_slam.Scan`) has `timestamp` = i * sweep_period (sequence time starts at 0): its sweep start.
 - `times` are per point, relative to `timestamp`, in [0, sweep_period); sweeps follow each other without gap.
+  They are the firing times of the sensor (`Lidar.firing_times(i)`), continuous within the sweep.
 - `points` are raw, as a real driver delivers them: each point in the sensor frame at its own time
   `timestamp + times[k]`, so `poses_at(timestamp + times[k]) @ [points[k], 1]` lies on the world surface
   (up to range noise). Nothing is motion-compensated.
@@ -13,9 +14,9 @@ frame's timestamps to s in [0, 1] by their own min and max and moves point k by 
 delta being the motion between its last two pose estimates. So pass `frame.points, frame.times` unchanged
 (relative or absolute stamps work alike; an empty array turns deskewing off). The points then end up in
 the sensor frame at the frame's LATEST point, and the pose KISS-ICP returns is T_world_sensor at
-`timestamp + times.max()` (= timestamp + sweep_period * (1 - 1 / columns)), not at `timestamp`: compare it
-with `poses_at(timestamp + times.max())`. Its first frame is not deskewed (no motion estimate yet); the
-sequence therefore starts from rest.
+`timestamp + times.max()` (= timestamp + sweep_period * (1 - 1 / columns) for a `SpinningLidar`), not at
+`timestamp`: compare it with `poses_at(timestamp + times.max())`. Its first frame is not deskewed (no motion
+estimate yet); `simulate_sequence` therefore starts from rest.
 """
 
 from __future__ import annotations
@@ -24,8 +25,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from pipelines.simulation.sensor import SpinningLidar
-from pipelines.simulation.trajectory import Route, Trajectory, random_wobble
+from pipelines.simulation.sensor import Lidar, SpinningLidar
+from pipelines.simulation.trajectory import PolylineRoute, Route, Trajectory, random_sway, random_wobble
 from pipelines.simulation.world import CityLayout, World, build_city
 from sandro_core.geometry import transform_points
 from sandro_slam.scan import Scan
@@ -44,7 +45,7 @@ class SimulatedSequence:
         self,
         world: World,
         trajectory: Trajectory,
-        lidar: SpinningLidar,
+        lidar: Lidar,
         num_frames: int,
         noise_sigma: float,
         seed: int,
@@ -70,9 +71,9 @@ class SimulatedSequence:
         if not 0 <= index < len(self):
             raise IndexError(f"frame {index} out of range [0, {len(self)})")
         timestamp = float(self.timestamps[index])
-        rng = np.random.default_rng([self.seed, 2, index])  # streams: city seed, wobble [seed, 1]
-        poses = self.poses_at(timestamp + self.lidar.column_times)
-        points, times = self.lidar.scan(self._scene, poses, self.noise_sigma, rng)
+        rng = np.random.default_rng([self.seed, 2, index])  # streams: city seed, wobble [seed, 1], sway [seed, 3]
+        poses = self.poses_at(timestamp + self.lidar.firing_times(index))
+        points, times = self.lidar.scan(self._scene, poses, index, self.noise_sigma, rng)
         return Scan(timestamp, points, times)
 
     def frames(self) -> Iterator[Scan]:
@@ -104,7 +105,7 @@ def simulate_sequence(
     lane_offset: float = 1.5,
     wobble_deg: float = 0.3,
     layout: CityLayout = CityLayout(),
-    lidar: SpinningLidar = SpinningLidar(),
+    lidar: Lidar = SpinningLidar(),
     loop: tuple[float, float, float, float] | None = None,
     start_distance: float = 0.0,
 ) -> SimulatedSequence:
@@ -123,14 +124,60 @@ def simulate_sequence(
         loop: (xmin, ymin, xmax, ymax) street centrelines [m] of the loop driven (None: `layout.loop`).
         start_distance: the drive starts this far [m] along the loop from its south mid-point.
     """
-    world = build_city(seed, layout)
+    route = Route(*(layout.loop if loop is None else loop), start=start_distance)
+    return make_sequence(
+        build_city(seed, layout), route, lidar, speed=spacing / lidar.sweep_period, distance=laps * route.length,
+        lane_offset=lane_offset, wobble_deg=wobble_deg, noise_sigma=noise_sigma, seed=seed, max_frames=frames,
+    )  # fmt: skip
+
+
+def make_sequence(
+    world: World,
+    route: Route | PolylineRoute,
+    lidar: Lidar = SpinningLidar(),
+    speed: float = 10.0,
+    distance: float | None = None,
+    accel_time: float = 2.0,
+    lane_offset: float = 0.0,
+    wobble_deg: float = 0.0,
+    sway: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    mount_pitch_deg: float = 0.0,
+    sensor_height: float = 1.8,
+    noise_sigma: float = 0.02,
+    seed: int = 0,
+    max_frames: int | None = None,
+) -> SimulatedSequence:
+    """Any sensor carried along any route through any world: the general form of `simulate_sequence`.
+
+    Args:
+        world: what the sensor sees.
+        route: the centreline followed (closed: laps; open: from its first waypoint to its last).
+        lidar: the sensor model (see `sensor.PRESETS`).
+        speed: cruise speed along the route [m/s].
+        distance: distance to drive [m], which sets the number of frames (None: one lap, or the whole open
+            route).
+        accel_time: time from rest to `speed` [s] (0: in motion from the first frame on).
+        lane_offset: lateral offset from lap 2 on [m], positive to the left (closed routes only).
+        wobble_deg: roll and pitch wobble amplitude [deg] at cruise speed (0: none).
+        sway: walking sway amplitudes at cruise speed: vertical bob [m], lateral sway [m], yaw [deg] (see
+            `random_sway`; zeros: none).
+        mount_pitch_deg: fixed pitch of the sensor [deg], positive looking down.
+        sensor_height: height of the sensor above the ground [m] (before the bob).
+        noise_sigma: range noise standard deviation [m].
+        seed: seeds the wobble, the sway and the range noise; the same arguments give identical frames.
+        max_frames: at most this many frames (None: as many as `distance` takes).
+    """
     trajectory = Trajectory(
-        route=Route(*(layout.loop if loop is None else loop), start=start_distance),
-        speed=spacing / lidar.sweep_period,
+        route=route,
+        speed=speed,
+        accel_time=accel_time,
+        sensor_height=sensor_height,
         lane_offset=lane_offset,
         wobble=random_wobble(np.random.default_rng([seed, 1]), wobble_deg),
+        sway=random_sway(np.random.default_rng([seed, 3]), *sway),
+        mount_pitch_deg=mount_pitch_deg,
     )
-    num_frames = int(trajectory.time_at(laps * trajectory.route.length) / lidar.sweep_period)
-    if frames is not None:
-        num_frames = min(num_frames, frames)
+    num_frames = int(trajectory.time_at(route.length if distance is None else distance) / lidar.sweep_period)
+    if max_frames is not None:
+        num_frames = min(num_frames, max_frames)
     return SimulatedSequence(world, trajectory, lidar, num_frames, noise_sigma, seed)

@@ -9,6 +9,9 @@ vacant lot) and street furniture placed at random (poles, trees, parked cars, lo
 symmetry enough for scan registration to be well-posed. All coordinates are world-frame metres, z up,
 ground z = 0.
 
+A `World` may also hold triangle meshes that are not axis-aligned boxes (the other sites in `sites`):
+`oriented_box`, `cylinder` and `ellipsoid` make closed parts, `merge_meshes` joins them.
+
 Flat facades parallel to the street leave pitch to the ground alone, and KISS-ICP then drifts in pitch
 (its point-to-point matches on a plane follow the scan-line pattern, not the surface). Floor ledges and
 tree crowns give horizontal edges, which hold that drift down (as 64 beams or narrower streets do too).
@@ -16,10 +19,12 @@ tree crowns give horizontal edges, which hold that drift down (as 64 beams or na
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial import ConvexHull
 
 # Triangles of a box whose 8 corners are indexed by bits (x, y, z) = (i & 1, i >> 1 & 1, i >> 2 & 1),
 # wound counter-clockwise seen from outside.
@@ -60,14 +65,20 @@ class CityLayout:
         return 0.0, 0.0, 2.0 * self.pitch, self.pitch
 
 
+Mesh = tuple[np.ndarray, np.ndarray]  # vertices (V, 3) float64 [m] and triangles (T, 3) int64 vertex indices
+
+
 @dataclass(frozen=True, eq=False)
 class World:
-    """Static geometry: axis-aligned boxes and the ground square z = 0, world frame [m]."""
+    """Static geometry in the world frame [m]: axis-aligned boxes, the ground square z = 0 and any other
+    triangles (`extra_vertices`, `extra_triangles`: a mesh indexed from 0, appended after the rest)."""
 
     boxes: np.ndarray  # (K, 6) [xmin, ymin, zmin, xmax, ymax, zmax]
     ground: tuple[float, float, float, float]  # (xmin, ymin, xmax, ymax) of the ground square
+    extra_vertices: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (V, 3) [m]
+    extra_triangles: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))  # (T, 3)
 
-    def mesh(self) -> tuple[np.ndarray, np.ndarray]:
+    def mesh(self) -> Mesh:
         """Triangle mesh of the world: vertices (V, 3) float64 [m] and triangles (T, 3) int64 indices."""
         bits = np.arange(8)
         lo, hi = self.boxes[:, :3], self.boxes[:, 3:]
@@ -77,20 +88,99 @@ class World:
         x0, y0, x1, y1 = self.ground
         ground_vertices = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x0, y1, 0.0], [x1, y1, 0.0]])
         ground_triangles = np.array([[0, 1, 2], [1, 3, 2]]) + 8 * len(self.boxes)
-        vertices = np.concatenate([corners.reshape(-1, 3), ground_vertices])
-        return vertices, np.concatenate([box_triangles, ground_triangles])
+        vertices = np.concatenate([corners.reshape(-1, 3), ground_vertices, self.extra_vertices])
+        extra_triangles = self.extra_triangles + 8 * len(self.boxes) + 4
+        return vertices, np.concatenate([box_triangles, ground_triangles, extra_triangles])
 
     def raycasting_scene(self) -> o3d.t.geometry.RaycastingScene:
         """An open3d raycasting scene holding the world mesh (float32 internally)."""
-        vertices, triangles = self.mesh()
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles.astype(np.uint32)))
-        return scene
+        return _scene(*self.mesh())
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Unsigned distance [m] from (N, 3) world points to the nearest world surface (builds a scene)."""
-        scene = self.raycasting_scene()
-        return scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy().astype(np.float64)
+        return _distance(self.raycasting_scene(), points)
+
+    def clearance(self, points: np.ndarray) -> np.ndarray:
+        """Unsigned distance [m] from (N, 3) world points to the nearest surface that is not horizontal
+        (walls, pillars, trunks, vehicles, crowns): the room around a sensor that `distance` hides under
+        the ground, floors and ceilings (builds a scene)."""
+        vertices, triangles = self.mesh()
+        a, b, c = (vertices[triangles[:, k]] for k in range(3))
+        normals = np.cross(b - a, c - a)
+        upright = np.abs(normals[:, 2]) < 0.999 * np.linalg.norm(normals, axis=1)
+        return _distance(_scene(vertices, triangles[upright]), points)
+
+
+def _scene(vertices: np.ndarray, triangles: np.ndarray) -> o3d.t.geometry.RaycastingScene:
+    """An open3d raycasting scene of one mesh: vertices (V, 3) [m], triangles (T, 3) indices."""
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles.astype(np.uint32)))
+    return scene
+
+
+def _distance(scene: o3d.t.geometry.RaycastingScene, points: np.ndarray) -> np.ndarray:
+    """Unsigned distance [m] from (N, 3) points to the nearest triangle of `scene`."""
+    return scene.compute_distance(o3d.core.Tensor(points.astype(np.float32))).numpy().astype(np.float64)
+
+
+def oriented_box(centre: Sequence[float], half_extents: Sequence[float], yaw: float = 0.0) -> Mesh:
+    """A closed box: centre (x, y, z) [m], half extents along its own x, y, z [m], turned by `yaw` [rad]
+    counter-clockwise about the world z axis. 8 vertices, 12 triangles wound outwards."""
+    bits = np.arange(8)
+    signs = np.stack([bits & 1, bits >> 1 & 1, bits >> 2 & 1], axis=1) * 2.0 - 1.0
+    local = signs * np.asarray(half_extents, dtype=np.float64)
+    c, s = np.cos(yaw), np.sin(yaw)
+    rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return local @ rotation.T + np.asarray(centre, dtype=np.float64), _BOX_TRIANGLES.copy()
+
+
+def cylinder(centre: Sequence[float], radius: float, bottom: float, top: float, sides: int = 10) -> Mesh:
+    """A closed vertical prism of `sides` sides standing for a trunk, pillar or pole: axis through world
+    (x, y) = centre [m], corners at `radius` [m], from z = bottom to z = top [m]. 4 * sides - 4 triangles."""
+    angles = 2.0 * np.pi * np.arange(sides) / sides
+    ring = np.asarray(centre, dtype=np.float64) + radius * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    vertices = np.concatenate([np.column_stack([ring, np.full(sides, z)]) for z in (bottom, top)])
+    k = np.arange(sides)
+    after = (k + 1) % sides
+    walls = np.concatenate([np.stack([k, after, k + sides], 1), np.stack([after, after + sides, k + sides], 1)])
+    fan = np.arange(1, sides - 1)
+    zero = np.zeros_like(fan)
+    caps = np.concatenate([np.stack([zero, fan + 1, fan], 1), np.stack([zero, fan, fan + 1], 1) + sides])
+    return vertices, np.concatenate([walls, caps])
+
+
+def _unit_sphere() -> Mesh:
+    """A unit sphere as an icosahedron with every edge halved and pushed out to the sphere: 42 vertices,
+    80 triangles wound outwards."""
+    g = 0.5 * (1.0 + np.sqrt(5.0))
+    corners = np.array([[0.0, a, b * g] for a in (-1, 1) for b in (-1, 1)])
+    corners = np.concatenate([np.roll(corners, shift, axis=1) for shift in range(3)])  # 12 corners, edges 2 long
+    i, j = np.nonzero(np.triu(np.linalg.norm(corners[:, None] - corners[None], axis=2) < 2.1, k=1))
+    vertices = np.concatenate([corners, corners[i] + corners[j]])
+    vertices /= np.linalg.norm(vertices, axis=1, keepdims=True)
+    triangles = ConvexHull(vertices).simplices.astype(np.int64)
+    a, b, c = (vertices[triangles[:, k]] for k in range(3))
+    inward = np.einsum("ij,ij->i", np.cross(b - a, c - a), a) < 0.0
+    triangles[inward] = triangles[inward][:, ::-1]
+    return vertices, triangles
+
+
+_SPHERE_VERTICES, _SPHERE_TRIANGLES = _unit_sphere()
+
+
+def ellipsoid(centre: Sequence[float], radii: Sequence[float]) -> Mesh:
+    """A closed low-poly ellipsoid (a tree crown): centre (x, y, z) [m], semi-axes along world x, y, z [m].
+    42 vertices, 80 triangles."""
+    vertices = _SPHERE_VERTICES * np.asarray(radii, dtype=np.float64) + np.asarray(centre, dtype=np.float64)
+    return vertices, _SPHERE_TRIANGLES.copy()
+
+
+def merge_meshes(parts: Sequence[Mesh]) -> Mesh:
+    """One mesh of all `parts` (each vertices (V, 3), triangles (T, 3) indexing its own vertices)."""
+    offsets = np.cumsum([0] + [len(vertices) for vertices, _ in parts])
+    vertices = np.concatenate([np.zeros((0, 3))] + [v for v, _ in parts])
+    triangles = [np.zeros((0, 3), dtype=np.int64)] + [t + offset for (_, t), offset in zip(parts, offsets)]
+    return vertices, np.concatenate(triangles).astype(np.int64)
 
 
 def _side_box(

@@ -27,14 +27,22 @@ def serial_map(function: Callable, arguments: list[tuple]) -> list:
     return [function(*args) for args in arguments]
 
 
+def merge_config(config: SlamConfig, sessions: list[Session]) -> SlamConfig:
+    """`config` with its lengths resolved (`SlamConfig.resolved`) at `config.scale`, else at the median scale the
+    sessions were mapped at (1 when none is known)."""
+    known = [s.scale for s in sessions if s.scale is not None]
+    return config.resolved(config.scale if config.scale is not None or not known else float(np.median(known)))
+
+
 def merge_sessions(
     sessions: list[Session], config: SlamConfig | None = None, map_function: MapFunction = serial_map
 ) -> MergeResult:
     """Join `sessions` (each in its own world frame) into the first one's frame; see the package docstring.
 
     `map_function` runs the independent expensive steps, the submap descriptions and the pair registrations: serial
-    by default, or spread over workers (`pipelines.cluster.ray_map`); the result does not depend on it."""
-    config = config or SlamConfig()
+    by default, or spread over workers (`pipelines.cluster.ray_map`); the result does not depend on it. Lengths
+    the configuration leaves None: see `merge_config`."""
+    config = merge_config(config or SlamConfig(), sessions)
     merge = config.merge
     _check(sessions)
     start = time.perf_counter()

@@ -9,8 +9,10 @@ from scipy.spatial import cKDTree
 from pipelines.simulation import simulate_sequence
 from sandro_core.geometry import transform_points
 from sandro_slam.candidates import PlaceRecognition
-from sandro_slam.config import KeyframeConfig, LoopDetectionConfig
+from sandro_slam.config import KeyframeConfig, SlamConfig
 from sandro_slam.keyframes import KeyframeBuilder
+
+REFERENCE = SlamConfig().resolved()  # every length at its reference value
 
 
 def _pose(x: float, yaw_deg: float = 0.0) -> np.ndarray:
@@ -51,7 +53,7 @@ def test_submaps_hold_each_voxel_once_in_the_keyframe_frame_within_the_radius():
 
 
 def test_a_turn_starts_a_keyframe():
-    builder = KeyframeBuilder(KeyframeConfig(distance=10.0, angle_deg=30.0))
+    builder = KeyframeBuilder(REFERENCE.keyframes.model_copy(update={"distance": 10.0, "angle_deg": 30.0}))
     points = np.ones((5, 3))
     assert builder.add_scan(0, _pose(0.0), points) is None  # the first keyframe starts
     assert builder.add_scan(1, _pose(1.0, 20.0), points) is None
@@ -71,7 +73,7 @@ class _Recorder:
 
 
 def test_place_recognition_sees_keyframes_map_closures_spacing_apart():
-    recognition = PlaceRecognition(LoopDetectionConfig(map_closures_spacing=15.0))
+    recognition = PlaceRecognition(REFERENCE.loops.model_copy(update={"map_closures_spacing": 15.0}))
     recognition._closures = _Recorder()
     travelled = {}
     for key in range(8):
@@ -79,7 +81,7 @@ def test_place_recognition_sees_keyframes_map_closures_spacing_apart():
         assert recognition.candidates(key, np.zeros((10, 3)), travelled) == []
     assert recognition._closures.seen == [0, 2, 4, 6]
 
-    every = PlaceRecognition(LoopDetectionConfig(map_closures_spacing=0.0))
+    every = PlaceRecognition(REFERENCE.loops.model_copy(update={"map_closures_spacing": 0.0}))
     every._closures = _Recorder()
     for key in range(8):
         every.candidates(key, np.zeros((10, 3)), travelled)
@@ -88,7 +90,7 @@ def test_place_recognition_sees_keyframes_map_closures_spacing_apart():
 
 def test_place_recognition_takes_any_64_bit_key():
     # gtsam symbols (x0, x1, ...) do not fit MapClosures' int ids: the ids are the keyframes' positions instead.
-    recognition = PlaceRecognition(LoopDetectionConfig(map_closures_spacing=0.0))
+    recognition = PlaceRecognition(REFERENCE.loops.model_copy(update={"map_closures_spacing": 0.0}))
     recognition._closures = _Recorder()
     travelled = {}
     for index in range(3):
@@ -110,7 +112,7 @@ def test_place_recognition_unpickled_finds_what_the_original_finds():
     )
     other = np.random.default_rng(0).uniform([-30, -30, -2], [30, 30, 0], (20000, 3))  # another place: rough ground
     travelled = {key: 10.0 * key for key in range(41)}  # MapClosures matches only maps at least 4 keyframes apart
-    original = PlaceRecognition(LoopDetectionConfig(map_closures_spacing=0.0))
+    original = PlaceRecognition(REFERENCE.loops.model_copy(update={"map_closures_spacing": 0.0}))
     original.candidates(0, submap, travelled)
     original.candidates(10, other, travelled)
     copy = pickle.loads(pickle.dumps(original))

@@ -4,13 +4,13 @@ import pickle
 
 import numpy as np
 
-from sandro_slam.config import LoopRegistrationConfig
+from sandro_slam.config import SlamConfig
 from sandro_slam.loop_registration import describe_submap, register_submaps
 
 
 def test_a_pickled_description_registers_exactly_as_the_original(drive):
     truth, _, scans = drive
-    config = LoopRegistrationConfig()
+    config = SlamConfig().resolved().registration
     target, source = describe_submap(scans[0], config), describe_submap(scans[1], config)
     copies = [pickle.loads(pickle.dumps(d)) for d in (target, source)]
     for original, copy in zip((target, source), copies):

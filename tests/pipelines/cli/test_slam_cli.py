@@ -220,3 +220,14 @@ def test_bad_scan_folder_inputs(tmp_path, capsys, arguments, words):
     assert main([str(folder), *arguments, "--out", str(tmp_path / "r")]) == 2
     _one_line_error(capsys, *words)
     assert not (tmp_path / "r").exists() or not any((tmp_path / "r").iterdir())
+
+
+@pytest.mark.slow
+def test_refine_reads_the_bag_again_and_reports_its_time(bag, tmp_path):
+    out = tmp_path / "results"
+    assert main([str(bag), "--gt", str(ground_truth_path(bag)), "--out", str(out), "--quiet", "--refine"]) == 0
+    folder = (out / "latest").resolve()
+    metrics = json.loads((folder / "metrics.json").read_text())
+    assert metrics["frames"] == FRAMES and metrics["timings_s"]["refine"] > 0.0
+    assert metrics["ground_truth"]["ate_slam_m"] < 0.3
+    assert "refine: true" in (folder / "config.yaml").read_text()

@@ -1,0 +1,81 @@
+"""The second pass of an offline run: every scan deskewed again and registered onto the loop-corrected map.
+
+Loop closure moves keyframes as rigid wholes, so what the odometry got wrong inside a keyframe (a sharp turn, a
+bad start) stays. After the first pass the keyframe submaps, at their optimised poses, make a map that is right at
+the scale of the whole drive; registering each scan onto it, in order, with the motion between its refined
+neighbours for deskewing, corrects the poses inside the keyframes too.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+from kiss_icp.kiss_icp import KissICP
+from kiss_icp.mapping import get_voxel_hash_map
+
+from sandro_core.geometry import transform_points
+from sandro_slam.config import SlamConfig
+from sandro_slam.keyframes import Keyframe, voxel_downsample
+from sandro_slam.scan import Scan
+
+KERNEL_VOXELS = 0.5  # ICP kernel (and a third of its correspondence distance) in odometry voxels
+REDESKEW_SHIFT = 0.05  # [m at scale 1] deskew and register again when the registration moves a scan's motion more
+
+
+def refine_poses(
+    scans: Iterable[Scan],
+    poses: np.ndarray,
+    keyframes: list[Keyframe],
+    keyframe_poses: dict[int, np.ndarray],
+    config: SlamConfig,
+) -> np.ndarray:
+    """The scans' poses after a second pass, (F, 4, 4) T_world_sensor.
+
+    Args:
+        scans: the F scans of the first pass, in order (the ones it used: finite points, skipped ones left out).
+        poses: (F, 4, 4) their first-pass poses (each moved with its keyframe), at the times the first pass gave.
+        keyframes, keyframe_poses: the first pass's keyframes and their optimised T_world_keyframe: the map.
+        config: the resolved configuration of the first pass (its odometry settings register the scans).
+
+    Each scan is deskewed with the motion from the refined pose before it to its own guess (KISS-ICP's
+    convention, to its latest point), registered with KISS-ICP's point-to-map ICP from the first-pass pose moved
+    with the correction of the scan before, and, when that moved its motion by more than REDESKEW_SHIFT x scale,
+    deskewed with the new motion and registered once more. Scans without per-point times are registered as they
+    are.
+    """
+    odometry = KissICP(config.odometry)
+    world_map = get_voxel_hash_map(config.odometry)
+    submaps = [transform_points(keyframe_poses[kf.key], kf.points) for kf in keyframes]
+    world_map.add_points(voxel_downsample(np.concatenate(submaps), config.keyframes.submap_voxel))
+    kernel = KERNEL_VOXELS * config.odometry.mapping.voxel_size
+    refined = np.empty_like(poses)
+    count = 0
+    for i, scan in enumerate(scans):
+        if i >= len(poses):
+            raise ValueError(f"more scans than the {len(poses)} poses of the first pass")
+        pose = poses[i] if i == 0 else refined[i - 1] @ np.linalg.inv(poses[i - 1]) @ poses[i]
+        motion = _motion(refined, poses, i, pose)
+        for attempt in range(2):
+            deskewed = odometry.preprocessor.preprocess(scan.points, scan.times, motion)
+            source, _ = odometry.voxelize(deskewed)
+            pose = odometry.registration.align_points_to_map(source, world_map, pose, 3.0 * kernel, kernel)
+            if i == 0 or len(scan.times) == 0 or attempt == 1:
+                break
+            moved = np.linalg.inv(refined[i - 1]) @ pose
+            if np.linalg.norm(moved[:3, 3] - motion[:3, 3]) < REDESKEW_SHIFT * config.scale:
+                break
+            motion = moved
+        refined[i] = pose
+        count += 1
+    if count != len(poses):
+        raise ValueError(f"{count} scans for the {len(poses)} poses of the first pass")
+    return refined
+
+
+def _motion(refined: np.ndarray, poses: np.ndarray, i: int, guess: np.ndarray) -> np.ndarray:
+    """The motion over scan i [T_previous_current] to deskew it with: from the refined scan before it to its guess
+    (the first scan: the first pass's motion to the next)."""
+    if i == 0:
+        return np.linalg.inv(poses[0]) @ poses[1] if len(poses) > 1 else np.eye(4)
+    return np.linalg.inv(refined[i - 1]) @ guess

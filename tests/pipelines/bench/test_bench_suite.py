@@ -1,0 +1,67 @@
+"""`sandro-bench suite`: the sequences it holds, its targets, and a smoke run on a few frames."""
+
+import json
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from pipelines.bench.suite import check_targets
+from pipelines.cli.bench import main
+from pipelines.simulation.suite import SUITE, cached_frames
+
+
+def test_the_suite_varies_what_breaks_slam():
+    assert len(SUITE) >= 12 and len({spec.name for spec in SUITE}) == len(SUITE)
+    assert set(Counter(spec.site for spec in SUITE)) == {"city", "garage", "campus", "office"}
+    assert set(Counter(spec.sensor for spec in SUITE)) == {"vlp16", "spinning32", "os128", "avia", "mid360"}
+    assert {"car", "walk"} <= {spec.platform for spec in SUITE}
+    assert {spec.start for spec in SUITE} == {"rest", "moving"}
+    assert sum(spec.time_field != "per_point" for spec in SUITE) >= 2
+    assert any("back" in spec.path for spec in SUITE)  # revisits in the opposite direction
+    assert len({spec.cache_key() for spec in SUITE}) == len(SUITE)
+
+
+def test_cached_frames_are_the_simulated_ones(tmp_path):
+    spec = next(spec for spec in SUITE if spec.time_field == "none_deskewed")
+    frames = list(cached_frames(spec, tmp_path, frames=3))
+    again = list(cached_frames(spec, tmp_path, frames=3))  # read back from the cache
+    sequence = spec.sequence()
+    assert len(frames) == 3 and len(list(tmp_path.iterdir())) == 1
+    for k, (frame, cached) in enumerate(zip(frames, again)):
+        direct = spec.scan(sequence, k)
+        assert frame.timestamp == direct.timestamp and len(frame.times) == 0
+        np.testing.assert_allclose(frame.points, direct.points, atol=1e-4)  # float32 on disk
+        np.testing.assert_array_equal(frame.points, cached.points)
+
+
+def test_targets_name_every_miss():
+    row = dict(sequence="a", ate_sandro_slam=0.3, ate_kiss_slam=0.2, ate_perfect_loop_floor=0.2, revisits=True,
+               loops_wrong_kept=1, loops_real_rejected=1, fps_sandro_slam=10.0, fps_kiss_slam=20.0)  # fmt: skip
+    misses = check_targets([row, {**row, "sequence": "b"}])
+    assert len(misses) == 2 * 3 + 2  # per row: KISS-SLAM, floor, wrong loop; real loops on two; frames/s
+    good = {**row, "ate_sandro_slam": 0.1, "loops_wrong_kept": 0, "loops_real_rejected": 0, "fps_sandro_slam": 30.0}
+    assert check_targets([good]) == []
+    assert check_targets([{**good, "revisits": False, "ate_perfect_loop_floor": 0.01}]) == []
+
+
+@pytest.mark.slow
+def test_smoke_run_writes_its_outputs(tmp_path):
+    out = tmp_path / "out"
+    argv = ["suite", "--sequences", "office_16_rooms_raw", "--frames", "40", "--no-kiss-slam"]
+    assert main([*argv, "--cache", str(tmp_path / "cache"), "--out", str(out)]) == 0
+    rows = json.loads((out / "suite.json").read_text())
+    assert [row["sequence"] for row in rows] == ["office_16_rooms_raw"] and rows[0]["frames"] == 40
+    assert rows[0]["ate_sandro_slam"] < 0.5 and rows[0]["scale"] < 0.5
+    for name in (
+        "suite.csv",
+        "suite.png",
+        "office_16_rooms_raw/trajectories.png",
+        "office_16_rooms_raw/sandro_slam.tum",
+    ):  # noqa: E501
+        assert (out / name).is_file()
+
+
+def test_unknown_sequence_is_a_usage_error(tmp_path, capsys):
+    assert main(["suite", "--sequences", "nowhere", "--out", str(tmp_path)]) == 2
+    assert "unknown or no sequences" in capsys.readouterr().err
