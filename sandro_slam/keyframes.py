@@ -28,6 +28,11 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     return voxel_down_sample(points, voxel)
 
 
+def cropped(points: np.ndarray, radius: float) -> np.ndarray:
+    """The points (N, 3) within `radius` [m] of the origin of their frame."""
+    return points[np.einsum("ij,ij->i", points, points) <= radius**2]
+
+
 class KeyframeBuilder:
     """Starts a keyframe every `distance` metres or `angle_deg` degrees of odometry and accumulates the
     scans that follow it, until the next keyframe, into its submap.
@@ -67,7 +72,7 @@ class KeyframeBuilder:
             self._next_key += 1
         T_keyframe_scan = np.linalg.inv(self._current.T_world_keyframe) @ T_world_scan
         moved = transform_points(T_keyframe_scan, points)
-        self._scans.append(moved[np.einsum("ij,ij->i", moved, moved) <= self.config.submap_radius**2])
+        self._scans.append(cropped(moved, self.config.submap_radius))
         return completed
 
     def flush(self) -> Keyframe | None:

@@ -83,13 +83,8 @@ def register_submaps(
     if not result.valid or len(result.inliers) < config.min_inliers:
         return _rejected(f"{len(result.inliers)} SANDRO inliers", start, result.transformation)
     T = result.transformation
-    method = o3d.pipelines.registration.TransformationEstimationPointToPlane()
     if config.icp_refine:
-        criteria = o3d.pipelines.registration.ICPConvergenceCriteria(ICP_RELATIVE_TOLERANCE, ICP_RELATIVE_TOLERANCE)
-        icp = o3d.pipelines.registration.registration_icp(
-            source.icp_points, target.cloud, config.icp_max_distance, T, method, criteria
-        )
-        T, overlap = np.asarray(icp.transformation), icp.fitness
+        T, overlap = _icp(source.icp_points, target.cloud, T, config)
     else:
         overlap = o3d.pipelines.registration.evaluate_registration(
             source.icp_points, target.cloud, config.icp_max_distance, T
@@ -104,6 +99,28 @@ def register_submaps(
         "" if accepted else f"overlap {overlap:.2f}",
         time.perf_counter() - start,
     )
+
+
+def icp_registration(
+    target: np.ndarray, source: np.ndarray, T_target_source: np.ndarray, config: LoopRegistrationConfig
+) -> tuple[np.ndarray, float]:
+    """(T_target_source, overlap) of `register_submaps`' ICP alone, from a guess: the source submap (N, 3) at
+    `icp_voxel` onto the target submap (M, 3) at `fpfh_voxel` with normals (radius of 2 voxels), both in their
+    keyframe frames."""
+    target_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target)).voxel_down_sample(config.fpfh_voxel)
+    target_cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(2.0 * config.fpfh_voxel, 30))
+    source_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source)).voxel_down_sample(config.icp_voxel)
+    return _icp(source_cloud, target_cloud, T_target_source, config)
+
+
+def _icp(
+    source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, T: np.ndarray, config: LoopRegistrationConfig
+) -> tuple[np.ndarray, float]:
+    """Point-to-plane ICP (the target with normals) from T; (the transform, its fitness: the overlap)."""
+    method = o3d.pipelines.registration.TransformationEstimationPointToPlane()
+    criteria = o3d.pipelines.registration.ICPConvergenceCriteria(ICP_RELATIVE_TOLERANCE, ICP_RELATIVE_TOLERANCE)
+    icp = o3d.pipelines.registration.registration_icp(source, target, config.icp_max_distance, T, method, criteria)
+    return np.asarray(icp.transformation), icp.fitness
 
 
 def _rejected(reason: str, start: float, T: np.ndarray | None = None) -> PairRegistration:

@@ -17,7 +17,7 @@ from sandro_slam.frontend import Frontend
 from sandro_slam.keyframes import Keyframe
 from sandro_slam.module import LoopClosure, LoopClosureModule
 from sandro_slam.odometry import GivenPoses
-from sandro_slam.refine import refine_poses
+from sandro_slam.refine import rebuilt_keyframes, refine_poses, reoptimized
 from sandro_slam.scan import Scan, as_scan
 from sandro_slam.scene_scale import SCANS, scene_scale
 from sandro_slam.timing import Stopwatch
@@ -34,6 +34,8 @@ class SlamResult:
     # (reregister_start), or the poses given
     keyframes: list[Keyframe]
     keyframe_of_frame: np.ndarray  # (F,) key of the keyframe each frame belongs to
+    T_keyframe_frame: np.ndarray  # (F, 4, 4) each frame's pose relative to its keyframe: the odometry's (after
+    # `OfflineSlam.refine`: the refined scans')
     graph: gtsam.NonlinearFactorGraph
     values: gtsam.Values  # initial keyframe poses (odometry)
     keyframe_poses: dict[int, np.ndarray]  # optimised T_world_keyframe
@@ -48,12 +50,7 @@ class SlamResult:
 
     def frame_poses(self, keyframe_poses: dict[int, np.ndarray]) -> np.ndarray:
         """(F, 4, 4) T_world_sensor of every frame, each moved rigidly with its keyframe to `keyframe_poses`."""
-        poses = np.empty_like(self.odometry_poses)
-        for keyframe in self.keyframes:
-            mine = self.keyframe_of_frame == keyframe.key
-            correction = keyframe_poses[keyframe.key] @ np.linalg.inv(keyframe.T_world_keyframe)
-            poses[mine] = correction @ self.odometry_poses[mine]
-        return poses
+        return np.stack([keyframe_poses[int(key)] for key in self.keyframe_of_frame]) @ self.T_keyframe_frame
 
 
 class OfflineSlam:
@@ -115,10 +112,10 @@ class OfflineSlam:
         return self._result(frontend, keyframe_poses, skipped, timings)
 
     def refine(self, frames: Iterable[Scan | Sequence], result: SlamResult, progress: bool = False) -> SlamResult:
-        """The second pass (`refine.refine_poses`): `result` with every frame's pose refined against the map of its
-        loop-corrected submaps. `frames` are those `run` made `result` from, read again (skipped ones included);
-        the keyframes, their poses, the graph and the loops stay as the first pass left them. Adds
-        timings["refine"] (and to "total")."""
+        """The second pass (`refine`): `result` with every scan refined against the map of the loop-corrected
+        submaps, the keyframe submaps made again from the refined scans, the loops the first pass kept measured
+        again on them (ICP), the graph optimised again. `frames` are those `run` made `result` from, read again
+        (skipped ones included). `odometry_poses` stay the first pass's; adds timings["refine"] (and to "total")."""
         start = time.perf_counter()
         skipped = set(result.skipped_frames)
         used = (
@@ -126,23 +123,43 @@ class OfflineSlam:
             for index, frame in enumerate(_with_progress(frames, progress, "refine"))
             if index not in skipped and (scan := _finite(as_scan(frame, index))) is not None
         )
-        poses = refine_poses(
-            itertools.islice(used, len(result.poses)), result.poses, result.keyframes, result.keyframe_poses,
-            result.config,
-        )  # fmt: skip
+        config = result.config
+        scan_poses, scans = refine_poses(
+            itertools.islice(used, len(result.poses)), result.poses, result.keyframes, result.keyframe_poses, config
+        )
+        keyframes = rebuilt_keyframes(result.keyframes, result.keyframe_of_frame, scan_poses, scans, config.keyframes)
+        del scans
+        graph, loops, keyframe_poses = reoptimized(
+            keyframes, result.loops, config, estimate_odometry_noise=result.odometry_noise_scale != 1.0
+        )
         seconds = time.perf_counter() - start
-        timings = {**result.timings, "refine": seconds, "total": result.timings["total"] + seconds}
-        return replace(result, poses=poses, timings=timings)
+        refined = replace(
+            result,
+            keyframes=keyframes,
+            T_keyframe_frame=_relative_to_keyframes(keyframes, result.keyframe_of_frame, scan_poses),
+            graph=graph.graph,
+            values=graph.values,
+            keyframe_poses=keyframe_poses,
+            loops=loops,
+            rejected_loops=[loop for loop in loops if loop.weight < 0.5],
+            odometry_noise_scale=graph.odometry_scale,
+            timings={**result.timings, "refine": seconds, "total": result.timings["total"] + seconds},
+        )
+        refined.poses = refined.frame_poses(keyframe_poses)
+        return refined
 
     def _result(
         self, frontend: Frontend, keyframe_poses: dict[int, np.ndarray], skipped: list[int], timings: dict[str, float]
     ) -> SlamResult:
+        odometry_poses = np.asarray(frontend.poses)
+        keyframe_of_frame = np.asarray(frontend.keyframe_of_frame)
         result = SlamResult(
             timestamps=np.asarray(frontend.timestamps, dtype=np.float64),
             poses=np.empty((0, 4, 4)),
-            odometry_poses=np.asarray(frontend.poses),
+            odometry_poses=odometry_poses,
             keyframes=frontend.keyframes,
-            keyframe_of_frame=np.asarray(frontend.keyframe_of_frame),
+            keyframe_of_frame=keyframe_of_frame,
+            T_keyframe_frame=_relative_to_keyframes(frontend.keyframes, keyframe_of_frame, odometry_poses),
             graph=self.module.graph,
             values=self.module.values,
             keyframe_poses=keyframe_poses,
@@ -163,6 +180,12 @@ def _with_progress(frames: Iterable, progress: bool, desc: str = "sandro-slam") 
     from tqdm import tqdm
 
     return tqdm(frames, unit="frame", desc=desc)
+
+
+def _relative_to_keyframes(keyframes: list[Keyframe], keyframe_of_frame: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """(F, 4, 4) each frame's pose relative to its keyframe's."""
+    T_keyframe_world = {keyframe.key: np.linalg.inv(keyframe.T_world_keyframe) for keyframe in keyframes}
+    return np.stack([T_keyframe_world[int(key)] for key in keyframe_of_frame]) @ poses
 
 
 def _first_scans(scans: Iterator[tuple[int, Scan | None]]) -> list[tuple[int, Scan | None]]:

@@ -1,22 +1,29 @@
-"""The second pass of an offline run: every scan deskewed again and registered onto the loop-corrected map.
+"""The second pass of an offline run: every scan deskewed again and registered onto the loop-corrected map, the
+submaps made again from the refined scans, the loops measured again on them, the graph optimised again.
 
 Loop closure moves keyframes as rigid wholes, so what the odometry got wrong inside a keyframe (a sharp turn, a
-bad start) stays. After the first pass the keyframe submaps, at their optimised poses, make a map that is right at
-the scale of the whole drive; registering each scan onto it, in order, with the motion between its refined
-neighbours for deskewing, corrects the poses inside the keyframes too.
+bad start) stays, in the poses and in the submaps the loops were measured on. After the first pass the keyframe
+submaps, at their optimised poses, make a map that is right at the scale of the whole drive; registering each scan
+onto it, in order, with the motion between its refined neighbours for deskewing, corrects the poses inside the
+keyframes too.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import replace
 
 import numpy as np
 from kiss_icp.kiss_icp import KissICP
 from kiss_icp.mapping import get_voxel_hash_map
 
 from sandro_core.geometry import transform_points
-from sandro_slam.config import SlamConfig
-from sandro_slam.keyframes import Keyframe, voxel_downsample
+from sandro_slam.config import KeyframeConfig, SlamConfig
+from sandro_slam.factors import odometry_covariance
+from sandro_slam.keyframes import Keyframe, cropped, voxel_downsample
+from sandro_slam.loop_registration import icp_registration
+from sandro_slam.module import LoopClosure
+from sandro_slam.pose_graph import PoseGraph
 from sandro_slam.scan import Scan
 
 KERNEL_VOXELS = 0.5  # ICP kernel (and a third of its correspondence distance) in odometry voxels
@@ -29,8 +36,9 @@ def refine_poses(
     keyframes: list[Keyframe],
     keyframe_poses: dict[int, np.ndarray],
     config: SlamConfig,
-) -> np.ndarray:
-    """The scans' poses after a second pass, (F, 4, 4) T_world_sensor.
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The scans' poses after a second pass, (F, 4, 4) T_world_sensor, and the scans deskewed with them (each in
+    its sensor frame, voxelised as KISS-ICP does for its map).
 
     Args:
         scans: the F scans of the first pass, in order (the ones it used: finite points, skipped ones left out).
@@ -49,7 +57,7 @@ def refine_poses(
     submaps = [transform_points(keyframe_poses[kf.key], kf.points) for kf in keyframes]
     world_map.add_points(voxel_downsample(np.concatenate(submaps), config.keyframes.submap_voxel))
     kernel = KERNEL_VOXELS * config.odometry.mapping.voxel_size
-    refined = np.empty_like(poses)
+    refined, deskewed_scans = np.empty_like(poses), []
     count = 0
     for i, scan in enumerate(scans):
         if i >= len(poses):
@@ -58,7 +66,7 @@ def refine_poses(
         motion = _motion(refined, poses, i, pose)
         for attempt in range(2):
             deskewed = odometry.preprocessor.preprocess(scan.points, scan.times, motion)
-            source, _ = odometry.voxelize(deskewed)
+            source, fine = odometry.voxelize(deskewed)
             pose = odometry.registration.align_points_to_map(source, world_map, pose, 3.0 * kernel, kernel)
             if i == 0 or len(scan.times) == 0 or attempt == 1:
                 break
@@ -67,10 +75,68 @@ def refine_poses(
                 break
             motion = moved
         refined[i] = pose
+        deskewed_scans.append(fine)
         count += 1
     if count != len(poses):
         raise ValueError(f"{count} scans for the {len(poses)} poses of the first pass")
-    return refined
+    return refined, deskewed_scans
+
+
+def rebuilt_keyframes(
+    keyframes: list[Keyframe],
+    keyframe_of_frame: np.ndarray,
+    poses: np.ndarray,
+    scans: list[np.ndarray],
+    config: KeyframeConfig,
+) -> list[Keyframe]:
+    """The keyframes made again from refined scans: the same scans each, the frame of each at the refined pose of
+    its first scan, its submap from the scans (sensor frame) at their refined `poses`, cropped and voxelised as
+    the first pass does it."""
+    rebuilt = []
+    for keyframe in keyframes:
+        T_world_keyframe = poses[keyframe.first_frame]
+        T_keyframe_world = np.linalg.inv(T_world_keyframe)
+        points = [
+            cropped(transform_points(T_keyframe_world @ poses[i], scans[i]), config.submap_radius)
+            for i in np.flatnonzero(keyframe_of_frame == keyframe.key)
+        ]
+        rebuilt.append(
+            Keyframe(keyframe.key, T_world_keyframe.copy(), keyframe.first_frame, keyframe.travelled,
+                     voxel_downsample(np.concatenate(points), config.submap_voxel))
+        )  # fmt: skip
+    return rebuilt
+
+
+def reoptimized(
+    keyframes: list[Keyframe], loops: list[LoopClosure], config: SlamConfig, estimate_odometry_noise: bool
+) -> tuple[PoseGraph, list[LoopClosure], dict[int, np.ndarray]]:
+    """The keyframe graph made again: odometry between consecutive rebuilt keyframes, each loop the first pass kept
+    measured again by ICP between the rebuilt submaps from their refined relative pose (kept as it was when that
+    ICP does not reach `min_overlap`), the others as they were; robustly optimised. (graph, the loops in it,
+    T_world_keyframe per key.)"""
+    graph = PoseGraph(config.graph)
+    by_key = {keyframe.key: keyframe for keyframe in keyframes}
+    previous = None
+    for keyframe in keyframes:
+        if previous is None:
+            graph.add_pose(keyframe.key, keyframe.T_world_keyframe)
+        else:
+            distance = float(np.linalg.norm(keyframe.T_world_keyframe[:3, 3] - previous.T_world_keyframe[:3, 3]))
+            covariance = odometry_covariance(distance, config.graph)
+            graph.add_pose(keyframe.key, keyframe.T_world_keyframe, previous.key, covariance)
+        previous = keyframe
+    measured = []
+    for loop in loops:
+        T = loop.T_target_source
+        if loop.weight >= 0.5:
+            target, source = by_key[loop.target_key], by_key[loop.source_key]
+            guess = np.linalg.inv(target.T_world_keyframe) @ source.T_world_keyframe
+            icp, overlap = icp_registration(target.points, source.points, guess, config.registration)
+            if overlap >= config.registration.min_overlap:
+                T = icp
+        factor = graph.add_loop(loop.target_key, loop.source_key, T, loop.covariance)
+        measured.append(replace(loop, T_target_source=T, factor=factor))
+    return graph, measured, graph.optimize(estimate_odometry_noise)
 
 
 def _motion(refined: np.ndarray, poses: np.ndarray, i: int, guess: np.ndarray) -> np.ndarray:

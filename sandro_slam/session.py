@@ -67,13 +67,6 @@ class Session:
                     loop is None or loop.weight >= 0.5,
                 )
             )
-        odometry_of_key = {kf.key: kf.T_world_keyframe for kf in result.keyframes}
-        T_keyframe_frame = np.stack(
-            [
-                np.linalg.inv(odometry_of_key[int(k)]) @ pose
-                for k, pose in zip(result.keyframe_of_frame, result.odometry_poses)
-            ]
-        )
         return cls(
             name,
             [kf.key for kf in result.keyframes],
@@ -82,7 +75,7 @@ class Session:
             edges,
             result.timestamps.copy(),
             result.keyframe_of_frame.astype(np.int64),
-            T_keyframe_frame,
+            result.T_keyframe_frame.copy(),
             result.config.scale,
         )
 

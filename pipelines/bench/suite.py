@@ -130,6 +130,9 @@ def evaluate_sequence(
         refined = slam.refine(frames, result, progress=True)
         row["refine_time_share"] = refined.timings["refine"] / result.timings["total"]
         trajectories["sandro-slam refined"] = refined.poses
+        wrong = loops_against_truth(refined, truth, WRONG_LOOP_M, WRONG_LOOP_DEG)
+        row["refined_loops_wrong_kept"] = wrong.get("loops_wrong", 0) - wrong.get("loops_wrong_rejected", 0)
+        row["refined_loops_real_rejected"] = wrong.get("loops_real_rejected", 0)
     if kiss_slam:
         print("KISS-SLAM ...", flush=True)
         kiss_poses, seconds = run_kiss_slam(frames, config.odometry.data.max_range)
