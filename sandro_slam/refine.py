@@ -58,12 +58,11 @@ def refine_poses(
     world_map.add_points(voxel_downsample(np.concatenate(submaps), config.keyframes.submap_voxel))
     kernel = KERNEL_VOXELS * config.odometry.mapping.voxel_size
     refined, deskewed_scans = np.empty_like(poses), []
-    count = 0
     for i, scan in enumerate(scans):
         if i >= len(poses):
             raise ValueError(f"more scans than the {len(poses)} poses of the first pass")
-        pose = poses[i] if i == 0 else refined[i - 1] @ np.linalg.inv(poses[i - 1]) @ poses[i]
-        motion = _motion(refined, poses, i, pose)
+        motion = _first_pass_motion(poses, i)  # from the refined scan before to this one's guess
+        pose = poses[i] if i == 0 else refined[i - 1] @ motion
         for attempt in range(2):
             deskewed = odometry.preprocessor.preprocess(scan.points, scan.times, motion)
             source, fine = odometry.voxelize(deskewed)
@@ -76,9 +75,8 @@ def refine_poses(
             motion = moved
         refined[i] = pose
         deskewed_scans.append(fine)
-        count += 1
-    if count != len(poses):
-        raise ValueError(f"{count} scans for the {len(poses)} poses of the first pass")
+    if len(deskewed_scans) != len(poses):
+        raise ValueError(f"{len(deskewed_scans)} scans for the {len(poses)} poses of the first pass")
     return refined, deskewed_scans
 
 
@@ -139,9 +137,8 @@ def reoptimized(
     return graph, measured, graph.optimize(estimate_odometry_noise)
 
 
-def _motion(refined: np.ndarray, poses: np.ndarray, i: int, guess: np.ndarray) -> np.ndarray:
-    """The motion over scan i [T_previous_current] to deskew it with: from the refined scan before it to its guess
-    (the first scan: the first pass's motion to the next)."""
+def _first_pass_motion(poses: np.ndarray, i: int) -> np.ndarray:
+    """The first pass's motion over scan i, T_previous_current (the first scan: the motion to the next)."""
     if i == 0:
         return np.linalg.inv(poses[0]) @ poses[1] if len(poses) > 1 else np.eye(4)
-    return np.linalg.inv(refined[i - 1]) @ guess
+    return np.linalg.inv(poses[i - 1]) @ poses[i]

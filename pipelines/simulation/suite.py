@@ -99,7 +99,7 @@ class SuiteSequence:
 
     def truth(self, times: np.ndarray) -> np.ndarray:
         """True T_world_sensor (M, 4, 4) at sequence times (M,) [s]."""
-        return _trajectory(self).poses(times)
+        return _sequence(self).poses_at(times)
 
     def cache_key(self) -> str:
         """A digest of everything that determines the frames."""
@@ -137,7 +137,7 @@ def cached_frames(
 ) -> CachedFrames:
     """The frames of `spec` (the first `frames` of them, or all) from `cache_dir`, ray cast and written there first
     if they are not."""
-    sequence = spec.sequence()
+    sequence = _sequence(spec)
     count = len(sequence) if frames is None else min(frames, len(sequence))
     folder = Path(cache_dir) / f"{spec.name}-{spec.cache_key()}-{count}"
     if (folder / "stamps.npy").exists():
@@ -157,5 +157,6 @@ def _site(name: str, seed: int) -> Site:
 
 
 @cache
-def _trajectory(spec: SuiteSequence):
-    return spec.sequence().trajectory
+def _sequence(spec: SuiteSequence) -> SimulatedSequence:
+    """`spec.sequence()` made once: the suite asks for its length, its frames and its truth."""
+    return spec.sequence()
