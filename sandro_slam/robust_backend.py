@@ -5,8 +5,10 @@ a loop exactly when its whitened error lies below the inlier threshold at the so
 loops that agree with their neighbours (`loop_consistency`): solved with those, every loop is judged at the
 solution, and solving and judging alternate until the kept loops no longer change; each round is one
 least-squares solve. Where too few loops have neighbours to agree with, graduated non-convexity (gtsam GNC) finds
-the TLS solution from the start instead, as it does for the Geman-McClure cost. See docs/back-end.md for the
-measurements behind the settings below.
+the TLS solution from the start instead, as it does for the Geman-McClure cost. When the solution bends the
+odometry beyond its covariances, TLS is also judged from the initial values (the odometry) and the solution of
+lower TLS cost stands: loops aliased by a repeated structure agree with each other, and can be grown into such a
+solution. See docs/back-end.md for the measurements behind the settings below.
 """
 
 from __future__ import annotations
@@ -51,8 +53,10 @@ def robust_optimize(
     its dimension. gnc_tls: TLS from the loops that agree with their neighbours (`supported_loops`), when at
     least `MIN_SEED_LOOPS` of them fit together (`_seeded`), grown by the innovation test (`_grown`); else
     gtsam's GncLMOptimizer from `initial` with `known_inliers` (prior and odometry factor indices) never
-    down-weighted (`_gnc`). gnc_gm: always GncLMOptimizer with the Geman-McClure cost. Then Levenberg-Marquardt
-    to convergence (`REFINE_RELATIVE_TOL`) on the factors kept.
+    down-weighted (`_gnc`). When that solution strains the known inliers (`_strained`), TLS is also judged from
+    `initial` (`_truncated`) and the solution of lower TLS cost stands (`_lower_cost`). gnc_gm: always
+    GncLMOptimizer with the Geman-McClure cost. Then Levenberg-Marquardt to convergence (`REFINE_RELATIVE_TOL`)
+    on the factors kept.
     With `noise_scale: estimated`, for graphs whose covariances are not to scale: when the loops the first run
     kept fit better than their covariances say (`variance_factor` below 1), a second run takes the thresholds
     times that factor (TLS from the first run's loops, or GNC from `initial`), loops it rejected that fit as
@@ -74,6 +78,9 @@ def robust_optimize(
         values, weights = _grown(graph, *seeded, known_inliers, thresholds, config.noise_scale == "estimated")
     else:
         values, weights = _gnc(graph, initial, known_inliers, config, 0.5 * thresholds[0])
+    if config.robust == "gnc_tls" and _strained(graph, values, known_inliers):
+        judged = _truncated(graph, initial, np.ones(graph.size()), known_inliers, thresholds)
+        values, weights = _lower_cost(graph, (values, weights), judged, known_inliers, thresholds)
     values = _refined(graph, values, weights)
     if config.noise_scale == "estimated" and len(set(dims)) == 1:
         scale = variance_factor(graph, values, weights, known_inliers)
@@ -108,6 +115,34 @@ def _grown(
             break
         values, weights = _truncated(graph, values, candidates, known_inliers, thresholds)
     return values, weights
+
+
+def _strained(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, known_inliers: list[int]) -> bool:
+    """Whether the known inliers (prior, odometry) fit `values` worse than their covariances say: their squared
+    whitened errors sum to more than their dimensions. At a least-squares optimum they sum to less (the fit
+    absorbs part of their noise); above it, the loops kept bend the odometry."""
+    squared = sum(2.0 * graph.at(i).error(values) for i in known_inliers)
+    return squared > sum(graph.at(i).dim() for i in known_inliers)
+
+
+def _lower_cost(
+    graph: gtsam.NonlinearFactorGraph,
+    first: tuple[gtsam.Values, np.ndarray],
+    second: tuple[gtsam.Values, np.ndarray],
+    known_inliers: list[int],
+    thresholds: np.ndarray,
+) -> tuple[gtsam.Values, np.ndarray]:
+    """Of two (values, weights) solutions, the one of lower TLS cost: the known inliers' squared whitened errors
+    plus every loop's, truncated at its threshold."""
+
+    loops = _loop_indices(graph.size(), known_inliers)
+
+    def cost(values: gtsam.Values) -> float:
+        squared = np.array([2.0 * graph.at(int(i)).error(values) for i in loops])
+        known = sum(2.0 * graph.at(i).error(values) for i in known_inliers)
+        return known + float(np.minimum(squared, thresholds).sum())
+
+    return second if cost(second[0]) < cost(first[0]) else first
 
 
 def _seeded(
