@@ -31,6 +31,13 @@ def test_the_scale_follows_the_ranges_and_stays_within_its_limits():
     assert scene_scale([]) == SCALE_LIMITS[1]
 
 
+def test_a_narrow_start_does_not_set_the_scale_of_a_wide_drive():
+    rng = np.random.default_rng(1)
+    narrow, wide = [_shell(rng, 20.0) for _ in range(10)], [_shell(rng, 33.0) for _ in range(40)]
+    assert scene_scale(narrow + wide) == pytest.approx(0.9, rel=0.05)
+    assert scene_scale(narrow) == pytest.approx(0.9 * 20.0 / REFERENCE_RANGE, rel=0.05)
+
+
 def test_resolving_scales_what_is_left_unset_and_keeps_what_is_set(tmp_path):
     config = SlamConfig(keyframes={"distance": 3.0})
     assert not config.is_resolved
