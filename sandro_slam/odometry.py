@@ -12,22 +12,47 @@ import numpy as np
 from kiss_icp.kiss_icp import KissICP
 from kiss_icp.mapping import get_voxel_hash_map
 
-from sandro_core.geometry import interpolate_poses, transform_points
+from sandro_core.geometry import interpolate_poses, rotation_angle, transform_points
 from sandro_slam.config import SlamConfig
 from sandro_slam.keyframes import voxel_downsample
 from sandro_slam.scan import Scan
 
 OdometryPose = tuple[float, np.ndarray, np.ndarray]  # (stamp [s], T_world_sensor, points in the sensor frame)
 MAX_HELD_SCANS = 300  # a start that stands still longer (30 s at 10 Hz) is not held back any further
+REDESKEW_DEG = 0.5  # deskew and register a scan again when its rotation differs from the prediction by more
 
 
 class ScanOdometry(KissICP):
-    """KISS-ICP that keeps the deskewed scan it voxelised for its map (`map_points`, at half its voxel size, in
-    the scan frame): the keyframe submaps take it rather than voxelising the scan again."""
+    """KISS-ICP that deskews a scan again when its rotation turned out other than predicted, and keeps the
+    deskewed scan it voxelised for its map (`map_points`, at half its voxel size, in the scan frame): the keyframe
+    submaps take it rather than voxelising the scan again.
 
-    def voxelize(self, iframe: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        source, self.map_points = super().voxelize(iframe)
-        return source, self.map_points
+    KISS-ICP deskews a scan with the motion of the scan before (constant velocity). Where the rotation rate
+    changes within a sweep (a car turning into a sharp corner, the yaw sway of a walker) the scan stays bent by
+    the difference, and so does its registered pose. When the registered rotation over the sweep differs from the
+    predicted one by more than REDESKEW_DEG, the scan is deskewed again with the registered rotation (the
+    translation stays the predicted one: along a corridor or a lane of pillars the registered translation is
+    the least certain part, and deskewing with it fed that back) and registered again from where the first
+    registration ended."""
+
+    def register_frame(self, frame: np.ndarray, timestamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        deskewed = self.preprocessor.preprocess(frame, timestamps, self.last_delta)
+        source, self.map_points = self.voxelize(deskewed)
+        sigma = self.adaptive_threshold.get_threshold()
+        prediction = self.last_pose @ self.last_delta
+        pose = self.registration.align_points_to_map(source, self.local_map, prediction, 3.0 * sigma, sigma)
+        motion = np.linalg.inv(self.last_pose) @ pose
+        turned = rotation_angle(self.last_delta[:3, :3].T @ motion[:3, :3])
+        if len(timestamps) and self.config.data.deskew and turned > np.radians(REDESKEW_DEG):
+            motion[:3, 3] = self.last_delta[:3, 3]
+            deskewed = self.preprocessor.preprocess(frame, timestamps, motion)
+            source, self.map_points = self.voxelize(deskewed)
+            pose = self.registration.align_points_to_map(source, self.local_map, pose, 3.0 * sigma, sigma)
+        self.adaptive_threshold.update_model_deviation(np.linalg.inv(prediction) @ pose)
+        self.local_map.update(self.map_points, pose)
+        self.last_delta = np.linalg.inv(self.last_pose) @ pose
+        self.last_pose = pose
+        return deskewed, source
 
 
 class KissIcpOdometry:
