@@ -55,11 +55,11 @@ class SlamResult:
 
 class OfflineSlam:
     """Runs the whole pipeline over scans; `module` is the LoopClosureModule it drives (made by `run` when the
-    configuration leaves lengths to the scene's scale), so that a caller can add factors and re-optimise."""
+    configuration leaves the scale to be measured), so that a caller can add factors and re-optimise."""
 
     def __init__(self, config: SlamConfig | None = None):
         self.config = config or SlamConfig()
-        self.module = LoopClosureModule(self.config) if self.config.is_resolved else None
+        self.module = LoopClosureModule(self.config) if self.config.scale is not None else None
 
     def run(
         self, frames: Iterable[Scan | Sequence], progress: bool = False, odometry: GivenPoses | None = None
@@ -77,13 +77,13 @@ class OfflineSlam:
         scans = (
             (index, _finite(as_scan(frame, index))) for index, frame in enumerate(_with_progress(frames, progress))
         )
-        head = [] if self.config.is_resolved else _first_scans(scans)
+        head = [] if self.config.scale is not None else _first_scans(scans)  # a scale set is used as it is
         if head:
             data = self.config.odometry.data
             scale = scene_scale([scan.points for _, scan in head if scan is not None], data.min_range, data.max_range)
             self.module = LoopClosureModule(self.config.resolved(scale))
         elif self.module is None:
-            self.module = LoopClosureModule(self.config.resolved())  # no scan at all
+            self.module = LoopClosureModule(self.config.resolved())  # the scale set, or 1 without any scan
         config = self.module.config
         policy = config.graph.estimate_odometry_noise
         self.module.estimate_odometry_noise = policy == "always" or (

@@ -72,6 +72,9 @@ def test_a_run_indoors_measures_a_small_scale_and_reports_the_values_used():
     assert result.config.is_resolved
     assert result.config.keyframes.distance == pytest.approx(10.0 * result.config.scale)
     assert config.scale is None  # the caller's configuration is left as it was
+    fixed = SlamConfig(scale=0.5)
+    fixed.loops.in_background = False
+    assert OfflineSlam(fixed).run(sequence.frames()).config.scale == 0.5  # a scale set is not measured again
 
 
 def test_a_merge_takes_the_sessions_scale_unless_one_is_set():

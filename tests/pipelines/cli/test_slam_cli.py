@@ -150,11 +150,14 @@ def test_ground_truth_from_another_time(bag, tmp_path, capsys):
 @pytest.mark.slow
 def test_ctrl_c_stops_and_still_writes_the_results(bag, tmp_path, interrupted_slam):
     out = tmp_path / "r"
+    config = tmp_path / "config.yaml"
+    config.write_text("scale: 1.0\n")  # scans are read one by one from the first: no head held to measure the scale
 
     def processing() -> bool:  # the run folder exists
         return out.is_dir() and any(out.iterdir())
 
-    returncode, stderr = interrupted_slam([str(bag), "--out", str(out), "--quiet"], processing, wait=60, settle=0.5)
+    args = [str(bag), "--config", str(config), "--out", str(out), "--quiet"]
+    returncode, stderr = interrupted_slam(args, processing, wait=60, settle=0.5)
     assert returncode == 0, stderr
     assert "Traceback" not in stderr and "stopping after this scan" in stderr
     metrics = json.loads((out / "latest" / "metrics.json").read_text())
