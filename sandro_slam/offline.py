@@ -190,10 +190,11 @@ def _relative_to_keyframes(keyframes: list[Keyframe], keyframe_of_frame: np.ndar
 
 def _first_scans(scans: Iterator[tuple[int, Scan | None]]) -> list[tuple[int, Scan | None]]:
     """Items of `scans` up to the SCANS-th that has points (all of them if fewer)."""
-    head = []
+    head, with_points = [], 0
     for item in scans:
         head.append(item)
-        if sum(scan is not None for _, scan in head) >= SCANS:
+        with_points += item[1] is not None
+        if with_points >= SCANS:
             break
     return head
 

@@ -158,8 +158,8 @@ def test_a_drive_that_starts_in_motion_leaves_no_bent_first_keyframe():
 
 @pytest.fixture(scope="module")
 def sharp_corners():
-    """A drive at 10 m/s into 10 m corners with no transition: the yaw rate steps to 57 deg/s. (frames, truth at
-    the frame times as KISS-ICP stamps them: the last point of each sweep)."""
+    """A drive at 10 m/s into 10 m corners with no transition: the yaw rate steps to 57 deg/s. (frames, the
+    simulated sequence, whose `poses_at` gives the truth)."""
     world = build_city(0)
     pitch = CityLayout().pitch
     corners = np.array([[20.0, 0.0], [pitch, 0.0], [pitch, pitch], [20.0, pitch]])
