@@ -12,6 +12,10 @@ rigid transform (up to 100 m, any yaw) so that no alignment can leak in; compute
             trajectories stay 210 m apart (x <= 70 m + lane offset against x >= 280 m - lane offset), more than
             twice the sensor range (100 m; submaps keep 30 m), so no place is within range of both. A merge
             is a failure.
+With --suite NAMES, `two` and `three` merge sessions of the evaluation suite (`sandro-bench suite --list`)
+instead: the first two and the first three named sequences, which must share a site (their world is then the
+same), each moved by its own random transform as above; --refine refines each session (OfflineSlam.refine)
+before the merge; `refuse` is skipped.
 Metrics of `two` and `three`, per session S after the first (A):
     transform_error_{m,deg}_S: T_merged_session[S] against the truth, each session's frame being its first
         pose (the issue's definition). It holds both sessions' own SLAM errors between their first pose and
@@ -27,7 +31,8 @@ Metrics of `two` and `three`, per session S after the first (A):
     first_pose_error_{m,deg}_S: the session's first pose against where the rigid fit of its own trajectory
         to ground truth puts it (single-session SLAM, no merge).
     ate_single_S, ate_merged_S, ate_ratio_S: ATE of S's own run; ATE in the merged frame (one SE3 alignment
-        of all merged trajectories together); their ratio. merge_seconds: merge_sessions alone;
+        of all merged trajectories together); their ratio. ate_merged_over_perfect_S: ate_merged_S over
+        perfect_ate_merged_S (every session, A too). merge_seconds: merge_sessions alone;
         sandro_merge_seconds_from_folders (two): the sandro-merge command on A and B written as results
         folders (out/cli-*/sessions/), reading, merging and writing everything (out/cli-*/merged/).
 Writes metrics.json, metrics.csv and merge.png into --out.
@@ -46,6 +51,7 @@ from pipelines.bench.common import default_out_dir, write_csv
 from pipelines.evaluation import align_se3, ate, pose_errors
 from pipelines.plots import plot_merges
 from pipelines.simulation import CityLayout, simulate_sequence
+from pipelines.simulation.suite import SUITE, SuiteSequence, cached_frames
 from sandro_core.geometry import rigid_fit
 from sandro_slam import OfflineSlam, Session, SlamConfig, merge_sessions
 
@@ -70,6 +76,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trials", type=int, default=20, help="seeded non-overlapping pairs of `refuse`")
     parser.add_argument("--trial-frames", type=int, default=150, help="frames per session of `refuse`")
     parser.add_argument("--skip", default="", help="comma list of parts to skip: two,three,refuse")
+    parser.add_argument(
+        "--suite", help="comma list of 2-3 suite sequences of one site: merge those sessions (skips `refuse`)"
+    )
+    parser.add_argument(
+        "--cache", type=Path, default=Path("results/suite_cache"), help="where simulated suite frames are cached"
+    )
+    parser.add_argument("--refine", action="store_true", help="refine each --suite session before merging")
 
 
 class _Sessions:
@@ -86,15 +99,47 @@ class _Sessions:
         if key not in self._cache:
             loop, start = route
             sequence = simulate_sequence(seed=seed, frames=frames, loop=loop, start_distance=start, layout=layout)
-            tic = time.perf_counter()
-            result = OfflineSlam(self.config).run(sequence.frames())
-            self.slam_seconds += time.perf_counter() - tic
-            truth = sequence.poses_at(result.timestamps)
-            # The session is handed over in a frame of its own: T_given_slam maps its SLAM world (its first scan) there.
-            T_given_slam = _random_transform(np.random.default_rng([seed, ord(name[0]), frames]))
-            session = Session.from_result(result, name).moved(T_given_slam)
-            self._cache[key] = (session, truth, T_given_slam @ np.linalg.inv(truth[0]))
+            rng = np.random.default_rng([seed, ord(name[0]), frames])
+            self._cache[key] = self._session(name, sequence.frames(), sequence.poses_at, rng)
         return self._cache[key]
+
+    def suite(self, spec: SuiteSequence, seed: int, cache_dir: Path, refine: bool):
+        """The session of a suite sequence (all its frames), refined first if `refine`."""
+        key = (spec, seed, refine)
+        if key not in self._cache:
+            frames = cached_frames(spec, cache_dir, progress=True)
+            rng = np.random.default_rng([seed, *spec.name.encode()])
+            self._cache[key] = self._session(spec.name, frames, spec.truth, rng, refine)
+        return self._cache[key]
+
+    def _session(self, name: str, frames, truth_at, rng: np.random.Generator, refine: bool = False):
+        """SLAM on `frames` (refined if `refine`: then they must be iterable twice), the session in a random frame."""
+        tic = time.perf_counter()
+        slam = OfflineSlam(self.config)
+        result = slam.run(frames, progress=True)
+        if refine:
+            result = slam.refine(frames, result, progress=True)
+        self.slam_seconds += time.perf_counter() - tic
+        truth = truth_at(result.timestamps)
+        # The session is handed over in a frame of its own: T_given_slam maps its SLAM world (its first scan) there.
+        T_given_slam = _random_transform(rng)
+        session = Session.from_result(result, name).moved(T_given_slam)
+        return session, truth, T_given_slam @ np.linalg.inv(truth[0])
+
+
+def _suite_sequences(names: str) -> list[SuiteSequence]:
+    """The 2-3 suite sequences of a comma list; all of one site."""
+    by_name = {spec.name: spec for spec in SUITE}
+    wanted = [name.strip() for name in names.split(",") if name.strip()]
+    unknown = [name for name in wanted if name not in by_name]
+    if unknown:
+        raise ValueError(f"unknown suite sequences: {', '.join(unknown)} (sandro-bench suite --list)")
+    if not 2 <= len(wanted) <= 3 or len(set(wanted)) != len(wanted):
+        raise ValueError(f"--suite takes 2 or 3 different sequences, got {len(wanted)}: {names}")
+    sites = {by_name[name].site for name in wanted}
+    if len(sites) > 1:
+        raise ValueError(f"--suite sequences must share a site, got {', '.join(sorted(sites))}")
+    return [by_name[name] for name in wanted]
 
 
 def _random_transform(rng: np.random.Generator) -> np.ndarray:
@@ -114,16 +159,25 @@ def run(args: argparse.Namespace) -> int:
     skip = {part.strip() for part in args.skip.split(",") if part.strip()}
     if skip - {"two", "three", "refuse"}:
         raise ValueError(f"unknown parts to skip: {','.join(sorted(skip - {'two', 'three', 'refuse'}))}")
+    specs = _suite_sequences(args.suite) if args.suite else []
     out = args.out or default_out_dir("bench_merge")
     out.mkdir(parents=True, exist_ok=True)
     cache = _Sessions(config)
-    metrics: dict = {"frames_per_session": args.frames, "seed": args.seed}
+    metrics: dict = {"seed": args.seed}
+    if specs:
+        skip |= {"refuse"} | ({"three"} if len(specs) < 3 else set())
+        metrics |= {"suite": [spec.name for spec in specs], "refine": args.refine}
+        get = {spec.name: lambda spec=spec: cache.suite(spec, args.seed, args.cache, args.refine) for spec in specs}
+    else:
+        metrics["frames_per_session"] = args.frames
+        get = {name: lambda name=name: cache.get(name, args.seed, args.frames, ROUTES[name]) for name in "ABC"}
     plots = {}
-    for part, names in (("two", "AB"), ("three", "ABC")):
+    for part, count in (("two", 2), ("three", 3)):
         if part in skip:
             continue
+        names = list(get)[:count]
         print(f"[{part}] sessions {', '.join(names)} ...", flush=True)
-        sessions = [cache.get(n, args.seed, args.frames, ROUTES[n]) for n in names]
+        sessions = [get[name]() for name in names]
         result = merge_sessions([s for s, _, _ in sessions], config)
         metrics[part] = _accuracy(sessions, result)
         plots[f"{part}: {'merged' if result.ok else 'refused'}"] = result
@@ -175,6 +229,7 @@ def _accuracy(sessions, result) -> dict:
         out[f"ate_ratio_{name}"] = merged_ate[index] / out[f"ate_single_{name}"]
         out[f"perfect_ate_merged_{name}"] = perfect_ate[index]
         out[f"perfect_ate_ratio_{name}"] = perfect_ate[index] / out[f"ate_single_{name}"]
+        out[f"ate_merged_over_perfect_{name}"] = merged_ate[index] / perfect_ate[index]
         _put(out, "first_pose_error", name, pose_errors(fits[index], np.linalg.inv(T_given_true)))
         if index == 0:
             continue

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipelines.bench.merge import _joint_ate, _perfectly_registered
+from pipelines.bench.merge import _joint_ate, _perfectly_registered, _suite_sequences
 from pipelines.evaluation import pose_errors
 
 
@@ -68,3 +68,19 @@ def test_a_session_on_one_straight_street_gets_its_roll_from_the_frames_axes():
     T = _perfectly_registered(T_A_WORLD @ TRUTH_A, TRUTH_A, T_s_world @ truth_s, truth_s)
     rotation_deg, translation_m = pose_errors(T, T_A_WORLD @ np.linalg.inv(T_s_world))
     assert rotation_deg < 1e-4 and translation_m < 1e-9
+
+
+def test_suite_sessions_are_two_or_three_different_sequences_of_one_site():
+    assert [s.name for s in _suite_sequences("city_32_car, city_16_big_moving")] == [
+        "city_32_car",
+        "city_16_big_moving",
+    ]
+    for names, message in (
+        ("city_32_car,garage_32_slow", "share a site"),
+        ("city_32_car", "2 or 3"),
+        ("city_32_car,city_32_car", "2 or 3"),
+        ("city_32_car,city_16_big_moving,city_128_out_back,city_avia_deskewed", "2 or 3"),
+        ("city_32_car,nowhere", "unknown suite sequences: nowhere"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            _suite_sequences(names)
