@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -9,6 +10,10 @@ from kiss_icp.voxelization import voxel_down_sample
 
 from sandro_core.geometry import rotation_angle, transform_points
 from sandro_slam.config import KeyframeConfig
+
+STEADY_DEG = 0.5  # [deg] a change of rotation between consecutive scans' motions that is always steady
+RECENT = 20  # scans whose median change of rotation is steady too (a walker's sway changes it on every scan)
+MAX_WAIT = 5  # scans a due keyframe waits for a steady one
 
 
 @dataclass
@@ -37,6 +42,13 @@ class KeyframeBuilder:
     """Starts a keyframe every `distance` metres or `angle_deg` degrees of odometry and accumulates the
     scans that follow it, until the next keyframe, into its submap.
 
+    A keyframe's frame is the odometry pose of its first scan, so a loop to it carries that one pose's error. A
+    scan whose rotation rate changed within its sweep (the first scan of a sharp turn) is deskewed with the wrong
+    rate and registered a degree or more off, an error the scans after it do not share. A due keyframe therefore
+    starts on the first steady scan, waiting at most MAX_WAIT scans: one whose rotation from the scan before
+    differs from the rotation of the scan before that by less than STEADY_DEG or than the median such change over
+    the last RECENT scans (under a walker's sway the rate changes on every scan, and no scan is steadier).
+
     Each scan is moved into the keyframe frame and cropped to `submap_radius`; when the keyframe closes, one
     voxelisation of them all keeps the first point of every voxel. Scans come voxelised already (`Frontend`
     passes the scan KISS-ICP voxelised for its own map), which keeps the points to move few.
@@ -46,7 +58,10 @@ class KeyframeBuilder:
         self.config = config
         self._current: Keyframe | None = None
         self._scans: list[np.ndarray] = []  # the current keyframe's scans, in its frame
-        self._last_position: np.ndarray | None = None
+        self._last_pose: np.ndarray | None = None
+        self._last_motion: np.ndarray | None = None
+        self._changes: deque[float] = deque(maxlen=RECENT)  # [rad] of the latest scans
+        self._waited = 0
         self._travelled = 0.0
         self._next_key = 0
 
@@ -61,15 +76,26 @@ class KeyframeBuilder:
         Returns the keyframe this scan completed, if it started a new one; the scan itself then belongs
         to the new keyframe.
         """
-        if self._last_position is not None:
-            self._travelled += float(np.linalg.norm(T_world_scan[:3, 3] - self._last_position))
-        self._last_position = T_world_scan[:3, 3].copy()
+        steady = False
+        if self._last_pose is not None:
+            motion = np.linalg.inv(self._last_pose) @ T_world_scan
+            self._travelled += float(np.linalg.norm(T_world_scan[:3, 3] - self._last_pose[:3, 3]))
+            if self._last_motion is not None:
+                change = rotation_angle(self._last_motion[:3, :3].T @ motion[:3, :3])
+                self._changes.append(change)
+                steady = change < max(np.radians(STEADY_DEG), float(np.median(self._changes)))
+            self._last_motion = motion
+        self._last_pose = T_world_scan
 
         completed = None
-        if self._current is None or self._is_new_keyframe(T_world_scan):
+        due = self._current is None or self._waited > 0 or self._is_new_keyframe(T_world_scan)
+        if due and (self._current is None or steady or self._waited >= MAX_WAIT):
+            self._waited = 0
             completed = self.flush()
             self._current = Keyframe(self._next_key, T_world_scan.copy(), frame_index, self._travelled)
             self._next_key += 1
+        elif due:
+            self._waited += 1
         T_keyframe_scan = np.linalg.inv(self._current.T_world_keyframe) @ T_world_scan
         moved = transform_points(T_keyframe_scan, points)
         self._scans.append(cropped(moved, self.config.submap_radius))

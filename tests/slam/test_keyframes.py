@@ -10,7 +10,7 @@ from pipelines.simulation import simulate_sequence
 from sandro_core.geometry import transform_points
 from sandro_slam.candidates import PlaceRecognition
 from sandro_slam.config import KeyframeConfig, SlamConfig
-from sandro_slam.keyframes import KeyframeBuilder
+from sandro_slam.keyframes import MAX_WAIT, KeyframeBuilder
 
 REFERENCE = SlamConfig().resolved()  # every length at its reference value
 
@@ -52,13 +52,37 @@ def test_submaps_hold_each_voxel_once_in_the_keyframe_frame_within_the_radius():
     assert builder.flush() is None
 
 
-def test_a_turn_starts_a_keyframe():
+def test_a_turn_starts_a_keyframe_on_a_steady_scan():
     builder = KeyframeBuilder(REFERENCE.keyframes.model_copy(update={"distance": 10.0, "angle_deg": 30.0}))
     points = np.ones((5, 3))
     assert builder.add_scan(0, _pose(0.0), points) is None  # the first keyframe starts
     assert builder.add_scan(1, _pose(1.0, 20.0), points) is None
-    assert builder.add_scan(2, _pose(2.0, 35.0), points).key == 0  # 35 deg from the keyframe: the next one starts
-    assert builder.current_key() == 1
+    # 35 deg from the keyframe: one is due, but this scan turned 15 deg where the one before turned 20: it waits
+    assert builder.add_scan(2, _pose(2.0, 35.0), points) is None
+    completed = builder.add_scan(3, _pose(3.0, 50.0), points)  # 15 deg again: steady, the next keyframe starts
+    assert completed.key == 0 and builder.current_key() == 1
+    assert builder.flush().first_frame == 3
+
+
+def test_a_due_keyframe_waits_for_a_steady_scan_at_most_max_wait_scans():
+    builder = KeyframeBuilder(REFERENCE.keyframes.model_copy(update={"distance": 10.0, "angle_deg": 360.0}))
+    points = np.ones((5, 3))
+    yaws = np.cumsum(0.1 * np.arange(30) ** 2)  # each scan's rotation rate changes more than any before: none steady
+    completed = [builder.add_scan(i, _pose(2.0 * i, yaw), points) for i, yaw in enumerate(yaws)]
+    keyframes = [k for k in completed if k is not None] + [builder.flush()]
+    # due every 10 m (5 scans), started MAX_WAIT scans later
+    assert [k.first_frame for k in keyframes] == [0, 5 + MAX_WAIT, 2 * (5 + MAX_WAIT)]
+
+
+def test_under_a_steady_sway_keyframes_start_when_due():
+    """A walker's yaw sways on every scan: a change of rotation at the median of the last scans is steady."""
+    builder = KeyframeBuilder(REFERENCE.keyframes.model_copy(update={"distance": 10.0, "angle_deg": 360.0}))
+    points = np.ones((5, 3))
+    yaws = 3.0 * np.sin(np.arange(30) * 1.3)  # up to 6 deg from one scan to the next and back
+    completed = [builder.add_scan(i, _pose(2.0 * i, yaw), points) for i, yaw in enumerate(yaws)]
+    keyframes = [k for k in completed if k is not None] + [builder.flush()]
+    waits = np.diff([k.first_frame for k in keyframes]) - 5  # due every 10 m: 5 scans
+    assert len(keyframes) == 6 and waits.max() <= 2 < MAX_WAIT  # at STEADY_DEG alone: 4 keyframes, waits 5, 3, 5
 
 
 class _Recorder:
