@@ -46,7 +46,7 @@ def keyframes(frames: int = 805, drift: float = 0.005, seed: int = 0) -> list[tu
     builder = KeyframeBuilder(SlamConfig().resolved().keyframes)  # street-scale lengths: a city drive
     completed = [builder.add_scan(i, odometry[i], scan.points) for i, (scan, _) in enumerate(scans)]
     completed = [keyframe for keyframe in completed + [builder.flush()] if keyframe is not None]
-    return [(kf.key, truth[kf.first_frame], odometry[kf.first_frame], kf.points) for kf in completed]
+    return [(kf.key, truth[kf.anchor_frame], odometry[kf.anchor_frame], kf.points) for kf in completed]
 
 
 def run(data: list[tuple], seed: int = 0) -> HostRun:

@@ -12,8 +12,9 @@ from sandro_core.geometry import rotation_angle, transform_points
 from sandro_slam.config import KeyframeConfig
 
 STEADY_DEG = 0.5  # [deg] a change of rotation between consecutive scans' motions that is always steady
-RECENT = 20  # scans whose median change of rotation is steady too (a walker's sway changes it on every scan)
-MAX_WAIT = 5  # scans a due keyframe waits for a steady one
+RECENT = 20  # scans whose changes of rotation set a steady one too: the walker's sway changes it on every scan
+STEADY_QUANTILE = 75  # [%] of those changes: a scan steady on both sides is then about every other one under sway
+ANCHOR_SCANS = 6  # a keyframe's frame is the pose of one of its first this many scans
 
 
 @dataclass
@@ -22,8 +23,8 @@ class Keyframe:
 
     key: int
     T_world_keyframe: np.ndarray  # odometry estimate, 4x4
-    first_frame: int  # index of the scan that started it
-    travelled: float  # odometry path length [m] at the keyframe
+    anchor_frame: int  # index of the scan whose pose is the keyframe frame (one of its first ANCHOR_SCANS)
+    travelled: float  # odometry path length [m] at that scan
     points: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
 
 
@@ -42,26 +43,29 @@ class KeyframeBuilder:
     """Starts a keyframe every `distance` metres or `angle_deg` degrees of odometry and accumulates the
     scans that follow it, until the next keyframe, into its submap.
 
-    A keyframe's frame is the odometry pose of its first scan, so a loop to it carries that one pose's error. A
-    scan whose rotation rate changed within its sweep (the first scan of a sharp turn) is deskewed with the wrong
-    rate and registered a degree or more off, an error the scans after it do not share. A due keyframe therefore
-    starts on the first steady scan, waiting at most MAX_WAIT scans: one whose rotation from the scan before
-    differs from the rotation of the scan before that by less than STEADY_DEG or than the median such change over
-    the last RECENT scans (under a walker's sway the rate changes on every scan, and no scan is steadier).
+    A keyframe's frame is the odometry pose of one of its scans (its anchor), so a loop to it carries that one
+    pose's error. A scan in whose sweep the rotation rate stepped (into or out of a sharp turn) is deskewed with
+    the wrong rate and registered a degree or more off, an error the scans around it do not share; the motions to
+    it and from it show it: they differ from their neighbours'. The anchor is the first of the keyframe's first
+    ANCHOR_SCANS scans that is steady on both sides: the change of rotation from the motion before it to its own,
+    and from its own to the next one's, is below STEADY_DEG or the STEADY_QUANTILE percentile of the changes over the
+    last RECENT scans (under a walker's sway the rate changes on every scan, and no scan is steadier); without
+    one, the scan of the smallest such change.
 
-    Each scan is moved into the keyframe frame and cropped to `submap_radius`; when the keyframe closes, one
+    The scans are moved into the keyframe frame and cropped to `submap_radius` when the keyframe closes; one
     voxelisation of them all keeps the first point of every voxel. Scans come voxelised already (`Frontend`
     passes the scan KISS-ICP voxelised for its own map), which keeps the points to move few.
     """
 
     def __init__(self, config: KeyframeConfig):
         self.config = config
-        self._current: Keyframe | None = None
-        self._scans: list[np.ndarray] = []  # the current keyframe's scans, in its frame
+        self._key: int | None = None  # the current keyframe's
+        self._start: tuple[np.ndarray, float] | None = None  # (pose, travelled) of its first scan: when it ends
+        # the current keyframe's scans: (frame index, T_world_scan, points, travelled, change of rotation [rad])
+        self._scans: list[tuple[int, np.ndarray, np.ndarray, float, float]] = []
+        self._changes: deque[float] = deque(maxlen=RECENT)  # [rad] of the latest scans
         self._last_pose: np.ndarray | None = None
         self._last_motion: np.ndarray | None = None
-        self._changes: deque[float] = deque(maxlen=RECENT)  # [rad] of the latest scans
-        self._waited = 0
         self._travelled = 0.0
         self._next_key = 0
 
@@ -76,47 +80,64 @@ class KeyframeBuilder:
         Returns the keyframe this scan completed, if it started a new one; the scan itself then belongs
         to the new keyframe.
         """
-        steady = False
+        change = np.inf  # of rotation from the motion before to this scan's: unknown for the first two scans
         if self._last_pose is not None:
-            motion = np.linalg.inv(self._last_pose) @ T_world_scan
             self._travelled += float(np.linalg.norm(T_world_scan[:3, 3] - self._last_pose[:3, 3]))
+            motion = np.linalg.inv(self._last_pose) @ T_world_scan
             if self._last_motion is not None:
                 change = rotation_angle(self._last_motion[:3, :3].T @ motion[:3, :3])
                 self._changes.append(change)
-                steady = change < max(np.radians(STEADY_DEG), float(np.median(self._changes)))
             self._last_motion = motion
         self._last_pose = T_world_scan
 
         completed = None
-        due = self._current is None or self._waited > 0 or self._is_new_keyframe(T_world_scan)
-        if due and (self._current is None or steady or self._waited >= MAX_WAIT):
-            self._waited = 0
-            completed = self.flush()
-            self._current = Keyframe(self._next_key, T_world_scan.copy(), frame_index, self._travelled)
+        if self._key is None or self._is_new_keyframe(T_world_scan):
+            completed = self._close(change)
+            self._key, self._start = self._next_key, (T_world_scan, self._travelled)
             self._next_key += 1
-        elif due:
-            self._waited += 1
-        T_keyframe_scan = np.linalg.inv(self._current.T_world_keyframe) @ T_world_scan
-        moved = transform_points(T_keyframe_scan, points)
-        self._scans.append(cropped(moved, self.config.submap_radius))
+        self._scans.append((frame_index, T_world_scan, points, self._travelled, change))
         return completed
 
     def flush(self) -> Keyframe | None:
         """Close the current keyframe and return it (None if there is none)."""
-        keyframe = self._current
-        if keyframe is None:
-            return None
-        keyframe.points = voxel_downsample(np.concatenate(self._scans), self.config.submap_voxel)
-        self._current = None
-        self._scans = []
-        return keyframe
+        return self._close(np.inf)
 
     def current_key(self) -> int | None:
         """Key of the keyframe the latest scan belongs to."""
-        return None if self._current is None else self._current.key
+        return self._key
+
+    def _close(self, next_change: float) -> Keyframe | None:
+        """The current keyframe, closed; `next_change`: the change of rotation [rad] at the scan after its last."""
+        if self._key is None:
+            return None
+        frame_index, T_world_keyframe, _, travelled, _ = self._scans[self._anchor(next_change)]
+        T_keyframe_world = np.linalg.inv(T_world_keyframe)
+        moved = [
+            cropped(transform_points(T_keyframe_world @ T_world_scan, points), self.config.submap_radius)
+            for _, T_world_scan, points, _, _ in self._scans
+        ]
+        keyframe = Keyframe(
+            self._key,
+            T_world_keyframe.copy(),
+            frame_index,
+            travelled,
+            voxel_downsample(np.concatenate(moved), self.config.submap_voxel),
+        )
+        self._key, self._start, self._scans = None, None, []
+        return keyframe
+
+    def _anchor(self, next_change: float) -> int:
+        """Index into the current scans of the keyframe's anchor (see the class docstring)."""
+        changes = [scan[4] for scan in self._scans] + [next_change]
+        both = np.maximum(changes[:-1], changes[1:])[:ANCHOR_SCANS]
+        steady = max(
+            np.radians(STEADY_DEG), float(np.percentile(self._changes, STEADY_QUANTILE)) if self._changes else 0.0
+        )
+        below = np.flatnonzero(both < steady)
+        return int(below[0]) if len(below) else int(np.argmin(both))
 
     def _is_new_keyframe(self, T_world_scan: np.ndarray) -> bool:
-        T_keyframe_scan = np.linalg.inv(self._current.T_world_keyframe) @ T_world_scan
-        moved = self._travelled - self._current.travelled
-        turned = np.degrees(rotation_angle(T_keyframe_scan[:3, :3]))
+        T_start, travelled = self._start
+        moved = self._travelled - travelled
+        turned = np.degrees(rotation_angle(T_start[:3, :3].T @ T_world_scan[:3, :3]))
         return moved >= self.config.distance or turned >= self.config.angle_deg

@@ -92,14 +92,14 @@ def rebuilt_keyframes(
     the first pass does it."""
     rebuilt = []
     for keyframe in keyframes:
-        T_world_keyframe = poses[keyframe.first_frame]
+        T_world_keyframe = poses[keyframe.anchor_frame]
         T_keyframe_world = np.linalg.inv(T_world_keyframe)
         points = [
             cropped(transform_points(T_keyframe_world @ poses[i], scans[i]), config.submap_radius)
             for i in np.flatnonzero(keyframe_of_frame == keyframe.key)
         ]
         rebuilt.append(
-            Keyframe(keyframe.key, T_world_keyframe.copy(), keyframe.first_frame, keyframe.travelled,
+            Keyframe(keyframe.key, T_world_keyframe.copy(), keyframe.anchor_frame, keyframe.travelled,
                      voxel_downsample(np.concatenate(points), config.submap_voxel))
         )  # fmt: skip
     return rebuilt

@@ -208,12 +208,12 @@ def loops_against_truth(
 def loop_errors(result: SlamResult, truth: np.ndarray) -> np.ndarray:
     """(L, 2) [deg, m]: each verified loop's error against the true relative pose of its keyframes (`truth`:
     (F, 4, 4) at the result's frames)."""
-    first_frame = {keyframe.key: keyframe.first_frame for keyframe in result.keyframes}
+    anchor_frame = {keyframe.key: keyframe.anchor_frame for keyframe in result.keyframes}
     return np.array(
         [
             pose_errors(
                 loop.T_target_source,
-                np.linalg.inv(truth[first_frame[loop.target_key]]) @ truth[first_frame[loop.source_key]],
+                np.linalg.inv(truth[anchor_frame[loop.target_key]]) @ truth[anchor_frame[loop.source_key]],
             )
             for loop in result.loops
         ]

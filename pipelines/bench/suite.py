@@ -187,7 +187,7 @@ def perfect_loop_floor(result: SlamResult, truth: np.ndarray) -> tuple[np.ndarra
     for index in range(result.graph.size()):
         if index not in loop_factors and result.graph.at(index) is not None:
             graph.add(result.graph.at(index))
-    true_pose = {kf.key: truth[kf.first_frame] for kf in result.keyframes}
+    true_pose = {kf.key: truth[kf.anchor_frame] for kf in result.keyframes}
     covariance = np.diag(FLOOR_SIGMAS**2)
     loops = 0
     for i, a in enumerate(result.keyframes):

@@ -4,13 +4,14 @@ import pickle
 
 import gtsam
 import numpy as np
+import pytest
 from scipy.spatial import cKDTree
 
 from pipelines.simulation import simulate_sequence
 from sandro_core.geometry import transform_points
 from sandro_slam.candidates import PlaceRecognition
 from sandro_slam.config import KeyframeConfig, SlamConfig
-from sandro_slam.keyframes import MAX_WAIT, KeyframeBuilder
+from sandro_slam.keyframes import ANCHOR_SCANS, KeyframeBuilder
 
 REFERENCE = SlamConfig().resolved()  # every length at its reference value
 
@@ -36,7 +37,8 @@ def test_submaps_hold_each_voxel_once_in_the_keyframe_frame_within_the_radius():
             completed.append(keyframe)
     completed.append(builder.flush())
 
-    assert [k.first_frame for k in completed] == [0, 4, 8]  # every 10 m of travel
+    # every 10 m of travel; the first keyframe's frame is the first scan with both changes of rotation known
+    assert [k.anchor_frame for k in completed] == [2, 4, 8]
     assert [k.key for k in completed] == [0, 1, 2]
     for keyframe in completed:
         T = keyframe.T_world_keyframe
@@ -52,37 +54,48 @@ def test_submaps_hold_each_voxel_once_in_the_keyframe_frame_within_the_radius():
     assert builder.flush() is None
 
 
-def test_a_turn_starts_a_keyframe_on_a_steady_scan():
+def test_a_turn_starts_a_keyframe():
     builder = KeyframeBuilder(REFERENCE.keyframes.model_copy(update={"distance": 10.0, "angle_deg": 30.0}))
     points = np.ones((5, 3))
     assert builder.add_scan(0, _pose(0.0), points) is None  # the first keyframe starts
     assert builder.add_scan(1, _pose(1.0, 20.0), points) is None
-    # 35 deg from the keyframe: one is due, but this scan turned 15 deg where the one before turned 20: it waits
-    assert builder.add_scan(2, _pose(2.0, 35.0), points) is None
-    completed = builder.add_scan(3, _pose(3.0, 50.0), points)  # 15 deg again: steady, the next keyframe starts
-    assert completed.key == 0 and builder.current_key() == 1
-    assert builder.flush().first_frame == 3
+    assert builder.add_scan(2, _pose(2.0, 35.0), points).key == 0  # 35 deg from the keyframe: the next one starts
+    assert builder.current_key() == 1
 
 
-def test_a_due_keyframe_waits_for_a_steady_scan_at_most_max_wait_scans():
-    builder = KeyframeBuilder(REFERENCE.keyframes.model_copy(update={"distance": 10.0, "angle_deg": 360.0}))
-    points = np.ones((5, 3))
-    yaws = np.cumsum(0.1 * np.arange(30) ** 2)  # each scan's rotation rate changes more than any before: none steady
-    completed = [builder.add_scan(i, _pose(2.0 * i, yaw), points) for i, yaw in enumerate(yaws)]
-    keyframes = [k for k in completed if k is not None] + [builder.flush()]
-    # due every 10 m (5 scans), started MAX_WAIT scans later
-    assert [k.first_frame for k in keyframes] == [0, 5 + MAX_WAIT, 2 * (5 + MAX_WAIT)]
+def _keyframes(yaws: np.ndarray, distance: float = 10.0) -> tuple[list, list[int]]:
+    """(the keyframes, the key each scan was given) of a drive 1 m a scan along x at the given yaws [deg]."""
+    builder = KeyframeBuilder(REFERENCE.keyframes.model_copy(update={"distance": distance, "angle_deg": 360.0}))
+    completed, keys = [], []
+    for index, yaw in enumerate(yaws):
+        completed.append(builder.add_scan(index, _pose(float(index), yaw), np.ones((5, 3))))
+        keys.append(builder.current_key())
+    return [k for k in completed if k is not None] + [builder.flush()], keys
 
 
-def test_under_a_steady_sway_keyframes_start_when_due():
-    """A walker's yaw sways on every scan: a change of rotation at the median of the last scans is steady."""
-    builder = KeyframeBuilder(REFERENCE.keyframes.model_copy(update={"distance": 10.0, "angle_deg": 360.0}))
-    points = np.ones((5, 3))
-    yaws = 3.0 * np.sin(np.arange(30) * 1.3)  # up to 6 deg from one scan to the next and back
-    completed = [builder.add_scan(i, _pose(2.0 * i, yaw), points) for i, yaw in enumerate(yaws)]
-    keyframes = [k for k in completed if k is not None] + [builder.flush()]
-    waits = np.diff([k.first_frame for k in keyframes]) - 5  # due every 10 m: 5 scans
-    assert len(keyframes) == 6 and waits.max() <= 2 < MAX_WAIT  # at STEADY_DEG alone: 4 keyframes, waits 5, 3, 5
+def test_a_keyframe_is_anchored_on_a_scan_steady_on_both_sides():
+    """Scan 10, where the keyframe is due, was registered 2.4 deg off (the scan of a sharp corner's start): the
+    motions to it and from it, and from the scan after, show it; the keyframe's frame is scan 13's pose."""
+    yaws = np.zeros(30)
+    yaws[10] = 2.4
+    keyframes, keys = _keyframes(yaws)
+    assert keys[9:12] == [0, 1, 1]  # the scans belong to the keyframe from when it is due
+    assert [k.anchor_frame for k in keyframes] == [2, 13, 20]  # the first: the first scan with both changes known
+    np.testing.assert_allclose(keyframes[1].T_world_keyframe, _pose(13.0))
+    assert keyframes[1].travelled == pytest.approx(13.0)
+
+
+def test_without_a_steady_scan_the_keyframe_is_anchored_on_the_steadiest():
+    yaws = np.cumsum(0.1 * np.arange(30) ** 2)  # each scan's rotation rate changes more than any before it
+    keyframes, _ = _keyframes(yaws)
+    assert [k.anchor_frame for k in keyframes[1:]] == [10, 20]  # each keyframe's first scan: the smallest changes
+
+
+def test_under_a_steady_sway_keyframes_are_anchored_near_their_start():
+    """A walker's yaw sways on every scan: a change of rotation below most of the last scans' is steady."""
+    keyframes, _ = _keyframes(3.0 * np.sin(np.arange(40) * 1.3))  # up to 6 deg from one scan to the next and back
+    offsets = [k.anchor_frame - 10 * i for i, k in enumerate(keyframes)][1:]
+    assert max(offsets) <= 2 < ANCHOR_SCANS - 1  # with the smallest recent change as the bar: 5, 0, 2
 
 
 class _Recorder:

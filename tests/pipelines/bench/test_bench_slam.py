@@ -59,7 +59,7 @@ def test_keyframe_floor_is_the_error_no_rigid_move_per_keyframe_removes():
 
 def test_loops_against_truth_tells_wrong_loops_from_real_ones():
     truth = _poses(np.arange(0.0, 60.0, 10.0))  # six keyframes 10 m apart, one scan each
-    keyframes = [SimpleNamespace(key=k, first_frame=k) for k in range(6)]
+    keyframes = [SimpleNamespace(key=k, anchor_frame=k) for k in range(6)]
 
     def loop(target, source, offset, weight):
         measured = np.linalg.inv(truth[target]) @ truth[source]
