@@ -61,7 +61,8 @@ class KeyframeBuilder:
         self.config = config
         self._key: int | None = None  # the current keyframe's
         self._start: tuple[np.ndarray, float] | None = None  # (pose, travelled) of its first scan: when it ends
-        # the current keyframe's scans: (frame index, T_world_scan, points, travelled, change of rotation [rad])
+        # the current keyframe's scans: (frame index, T_world_scan, points in the world frame, travelled, change of
+        # rotation [rad]); moved out of the caller's arrays at once
         self._scans: list[tuple[int, np.ndarray, np.ndarray, float, float]] = []
         self._changes: deque[float] = deque(maxlen=RECENT)  # [rad] of the latest scans
         self._last_pose: np.ndarray | None = None
@@ -95,7 +96,9 @@ class KeyframeBuilder:
             completed = self._close(change)
             self._key, self._start = self._next_key, (T_world_scan, self._travelled)
             self._next_key += 1
-        self._scans.append((frame_index, T_world_scan, points, self._travelled, change))
+        self._scans.append(
+            (frame_index, T_world_scan.copy(), transform_points(T_world_scan, points), self._travelled, change)
+        )
         return completed
 
     def flush(self) -> Keyframe | None:
@@ -113,8 +116,8 @@ class KeyframeBuilder:
         frame_index, T_world_keyframe, _, travelled, _ = self._scans[self._anchor(next_change)]
         T_keyframe_world = np.linalg.inv(T_world_keyframe)
         moved = [
-            cropped(transform_points(T_keyframe_world @ T_world_scan, points), self.config.submap_radius)
-            for _, T_world_scan, points, _, _ in self._scans
+            cropped(transform_points(T_keyframe_world, points), self.config.submap_radius)
+            for _, _, points, _, _ in self._scans
         ]
         keyframe = Keyframe(
             self._key,

@@ -155,3 +155,11 @@ def test_place_recognition_unpickled_finds_what_the_original_finds():
     copy = pickle.loads(pickle.dumps(original))
     assert original.candidates(40, submap, travelled) == [0]
     assert copy.candidates(40, submap, travelled) == [0]
+
+
+def test_a_submap_does_not_change_when_the_caller_reuses_its_arrays():
+    builder = KeyframeBuilder(REFERENCE.keyframes.model_copy(update={"distance": 10.0, "submap_voxel": 0.01}))
+    pose, points = _pose(0.0), np.array([[1.0, 2.0, 0.0]])
+    builder.add_scan(0, pose, points)
+    pose[0, 3], points[:] = 5.0, 7.0  # a caller writing its next scan into the same buffers
+    np.testing.assert_allclose(builder.flush().points, [[1.0, 2.0, 0.0]])
