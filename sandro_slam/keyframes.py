@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from kiss_icp.voxelization import voxel_down_sample
@@ -26,6 +27,16 @@ class Keyframe:
     anchor_frame: int  # index of the scan whose pose is the keyframe frame (one of its first ANCHOR_SCANS)
     travelled: float  # odometry path length [m] at that scan
     points: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
+
+
+class _HeldScan(NamedTuple):
+    """A scan of the current keyframe, held until it closes (copied out of the caller's arrays)."""
+
+    frame_index: int
+    T_world_scan: np.ndarray
+    points: np.ndarray  # in the world frame of the odometry
+    travelled: float  # [m] odometry path length at the scan
+    change: float  # [rad] change of rotation from the motion before to the scan's own (inf: unknown)
 
 
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -60,10 +71,7 @@ class KeyframeBuilder:
     def __init__(self, config: KeyframeConfig):
         self.config = config
         self._key: int | None = None  # the current keyframe's
-        self._start: tuple[np.ndarray, float] | None = None  # (pose, travelled) of its first scan: when it ends
-        # the current keyframe's scans: (frame index, T_world_scan, points in the world frame, travelled, change of
-        # rotation [rad]); moved out of the caller's arrays at once
-        self._scans: list[tuple[int, np.ndarray, np.ndarray, float, float]] = []
+        self._scans: list[_HeldScan] = []  # the current keyframe's
         self._changes: deque[float] = deque(maxlen=RECENT)  # [rad] of the latest scans
         self._last_pose: np.ndarray | None = None
         self._last_motion: np.ndarray | None = None
@@ -81,6 +89,7 @@ class KeyframeBuilder:
         Returns the keyframe this scan completed, if it started a new one; the scan itself then belongs
         to the new keyframe.
         """
+        T_world_scan = T_world_scan.copy()
         change = np.inf  # of rotation from the motion before to this scan's: unknown for the first two scans
         if self._last_pose is not None:
             self._travelled += float(np.linalg.norm(T_world_scan[:3, 3] - self._last_pose[:3, 3]))
@@ -94,10 +103,10 @@ class KeyframeBuilder:
         completed = None
         if self._key is None or self._is_new_keyframe(T_world_scan):
             completed = self._close(change)
-            self._key, self._start = self._next_key, (T_world_scan, self._travelled)
+            self._key = self._next_key
             self._next_key += 1
         self._scans.append(
-            (frame_index, T_world_scan.copy(), transform_points(T_world_scan, points), self._travelled, change)
+            _HeldScan(frame_index, T_world_scan, transform_points(T_world_scan, points), self._travelled, change)
         )
         return completed
 
@@ -113,25 +122,24 @@ class KeyframeBuilder:
         """The current keyframe, closed; `next_change`: the change of rotation [rad] at the scan after its last."""
         if self._key is None:
             return None
-        frame_index, T_world_keyframe, _, travelled, _ = self._scans[self._anchor(next_change)]
-        T_keyframe_world = np.linalg.inv(T_world_keyframe)
+        anchor = self._scans[self._anchor(next_change)]
+        T_keyframe_world = np.linalg.inv(anchor.T_world_scan)
         moved = [
-            cropped(transform_points(T_keyframe_world, points), self.config.submap_radius)
-            for _, _, points, _, _ in self._scans
+            cropped(transform_points(T_keyframe_world, scan.points), self.config.submap_radius) for scan in self._scans
         ]
         keyframe = Keyframe(
             self._key,
-            T_world_keyframe.copy(),
-            frame_index,
-            travelled,
+            anchor.T_world_scan,
+            anchor.frame_index,
+            anchor.travelled,
             voxel_downsample(np.concatenate(moved), self.config.submap_voxel),
         )
-        self._key, self._start, self._scans = None, None, []
+        self._key, self._scans = None, []
         return keyframe
 
     def _anchor(self, next_change: float) -> int:
         """Index into the current scans of the keyframe's anchor (see the class docstring)."""
-        changes = [scan[4] for scan in self._scans] + [next_change]
+        changes = [scan.change for scan in self._scans] + [next_change]
         both = np.maximum(changes[:-1], changes[1:])[:ANCHOR_SCANS]
         steady = max(
             np.radians(STEADY_DEG), float(np.percentile(self._changes, STEADY_QUANTILE)) if self._changes else 0.0
@@ -140,7 +148,7 @@ class KeyframeBuilder:
         return int(below[0]) if len(below) else int(np.argmin(both))
 
     def _is_new_keyframe(self, T_world_scan: np.ndarray) -> bool:
-        T_start, travelled = self._start
-        moved = self._travelled - travelled
-        turned = np.degrees(rotation_angle(T_start[:3, :3].T @ T_world_scan[:3, :3]))
+        first = self._scans[0]
+        moved = self._travelled - first.travelled
+        turned = np.degrees(rotation_angle(first.T_world_scan[:3, :3].T @ T_world_scan[:3, :3]))
         return moved >= self.config.distance or turned >= self.config.angle_deg
