@@ -196,7 +196,8 @@ def _on_ray(jobs: list[Job], todo: list[int], rows: list, bar, on_row, workers: 
 @contextmanager
 def _threads_limited(config: SlamConfig, threads: int) -> Iterator[SlamConfig]:
     """`config` with KISS-ICP limited to `threads`, and this process likewise (`cluster.threads_limited`) while
-    the block runs; 0: unchanged."""
+    the block runs; 0: unchanged. KISS-ICP sets its thread count once per process, at its first registration
+    (a process-wide TBB limit): the runs of one process must ask for the same count."""
     if threads <= 0:
         yield config
         return

@@ -2,12 +2,14 @@
 
 slam: --bags simulated bags (`sandro-simulate`, seeds 0..N-1, --frames scans each; written once into --cache and
     reused) run by `sandro-slam`'s batch runner in five ways, each timed as a whole (wall clock):
-        serial-1t   a plain loop in this process, every run limited to one thread (`--threads-per-task 1`)
+        serial-1t   a plain loop in one new process, every run limited to one thread (`--threads-per-task 1`)
         ray1-1t     Ray with one worker, one thread per task
         ray2-1t     Ray with two workers, one thread per task
         serial      a plain loop, every run with all threads
         ray2        Ray with two workers, all threads per task
-    Scaling is measured per thread: KISS-ICP alone keeps two cores busy, so two default tasks share the cores.
+    The plain loops run in a new process each, as Ray's workers do: KISS-ICP fixes its thread count for the
+    whole process at its first registration. Scaling is measured per thread: KISS-ICP alone keeps two cores busy,
+    so two default tasks share the cores.
     Equal results: every run's poses.tum and loops.csv against serial-1t's (byte for byte). Memory: the peak
     resident size of the processes that ran the inputs (a Ray worker's covers every input it ran).
 merge: --sessions simulated sessions of one city (SLAM of --session-frames scans each, computed once per run),
@@ -22,7 +24,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import time
+from concurrent.futures import ProcessPoolExecutor
 from functools import partial
 from pathlib import Path
 
@@ -30,7 +34,7 @@ import numpy as np
 
 from pipelines.bench.common import default_out_dir, write_csv
 
-WAYS = {  # name: (workers, threads per task); workers 0: a plain loop in this process
+WAYS = {  # name: (workers, threads per task); workers 0: a plain loop in one new process
     "serial-1t": (0, 1),
     "ray1-1t": (1, 1),
     "ray2-1t": (2, 1),
@@ -109,8 +113,9 @@ def _run_way(way: str, bags: list[Path], out: Path) -> dict:
     jobs = jobs_for(bags, out, config=SlamConfig(), threads=threads)
     print(f"{way}: {len(bags)} bags ...", flush=True)
     tic = time.perf_counter()
-    if workers == 0:
-        rows = [run_job(job) for job in jobs]  # the plain loop the Ray paths are measured against
+    if workers == 0:  # the plain loop the Ray paths are measured against
+        with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as process:
+            rows = list(process.map(run_job, jobs))
     else:
         rows = run_batch(jobs, workers, progress=False)
     wall = time.perf_counter() - tic

@@ -17,7 +17,7 @@ def write_tum(path: Path, timestamps: np.ndarray, poses: np.ndarray) -> None:
     quaternions = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x y z w
     rows = np.column_stack([timestamps, poses[:, :3, 3], quaternions])
     with atomic_path(path) as tmp:
-        np.savetxt(tmp, rows, fmt="%.9f")
+        np.savetxt(tmp, _printed(rows), fmt="%.9f")
 
 
 def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -29,7 +29,13 @@ def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def write_kitti(path: Path, poses: np.ndarray) -> None:
     """Write (N, 4, 4) poses as KITTI lines, atomically: the top 3x4 of each matrix, row-major."""
     with atomic_path(path) as tmp:
-        np.savetxt(tmp, poses[:, :3, :].reshape(len(poses), 12), fmt="%.9f")
+        np.savetxt(tmp, _printed(poses[:, :3, :].reshape(len(poses), 12)), fmt="%.9f")
+
+
+def _printed(values: np.ndarray) -> np.ndarray:
+    """`values` rounded to the 9 decimals written, with no negative zero: a value that prints as zero has no sign
+    (rounding noise, such as a last bit from another process, would otherwise flip it)."""
+    return np.round(values, 9) + 0.0
 
 
 def read_kitti(path: Path) -> np.ndarray:

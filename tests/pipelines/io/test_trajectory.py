@@ -27,6 +27,15 @@ def test_kitti_layout(tmp_path, walk):
     np.testing.assert_allclose(np.loadtxt(tmp_path / "k.txt").reshape(3, 3, 4), poses[:, :3, :], atol=1e-8)
 
 
+def test_values_that_print_as_zero_have_no_sign(tmp_path):
+    pose = np.eye(4)
+    pose[:3, 3] = [-1e-12, 1e-12, -4e-10]
+    write_tum(tmp_path / "t.tum", np.array([-1e-12]), pose[None])
+    write_kitti(tmp_path / "k.txt", pose[None])
+    for name in ("t.tum", "k.txt"):
+        assert "-" not in (tmp_path / name).read_text()
+
+
 def test_not_a_tum_file(tmp_path):
     (tmp_path / "bad.txt").write_text("1 2 3\n")
     with pytest.raises(ValueError, match="8 columns"):
