@@ -47,6 +47,12 @@ def walk():
     return poses
 
 
+def _sigint_default() -> None:
+    """Ctrl-C back to its default in the child: a shell starts background jobs with SIGINT ignored, which a child
+    inherits, and Python then installs no KeyboardInterrupt handler."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.fixture
 def interrupted_slam():
     """(sandro-slam arguments, started: () -> bool, wait [s], settle [s]) -> (exit code, stderr): `sandro-slam` in a
@@ -61,6 +67,7 @@ def interrupted_slam():
             stderr=subprocess.PIPE,
             text=True,
             start_new_session=True,
+            preexec_fn=_sigint_default,
         )
         deadline = time.monotonic() + wait
         while not started() and time.monotonic() < deadline:
