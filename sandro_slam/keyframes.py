@@ -34,7 +34,7 @@ class _HeldScan(NamedTuple):
 
     frame_index: int
     T_world_scan: np.ndarray
-    points: np.ndarray  # in the world frame of the odometry
+    points: np.ndarray  # in the scan frame
     travelled: float  # [m] odometry path length at the scan
     change: float  # [rad] change of rotation from the motion before to the scan's own (inf: unknown)
 
@@ -106,7 +106,7 @@ class KeyframeBuilder:
             self._key = self._next_key
             self._next_key += 1
         self._scans.append(
-            _HeldScan(frame_index, T_world_scan, transform_points(T_world_scan, points), self._travelled, change)
+            _HeldScan(frame_index, T_world_scan, np.array(points, dtype=np.float64), self._travelled, change)
         )
         return completed
 
@@ -125,7 +125,8 @@ class KeyframeBuilder:
         anchor = self._scans[self._anchor(next_change)]
         T_keyframe_world = np.linalg.inv(anchor.T_world_scan)
         moved = [
-            cropped(transform_points(T_keyframe_world, scan.points), self.config.submap_radius) for scan in self._scans
+            cropped(transform_points(T_keyframe_world @ scan.T_world_scan, scan.points), self.config.submap_radius)
+            for scan in self._scans
         ]
         keyframe = Keyframe(
             self._key,
