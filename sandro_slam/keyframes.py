@@ -50,6 +50,19 @@ def cropped(points: np.ndarray, radius: float) -> np.ndarray:
     return points[np.einsum("ij,ij->i", points, points) <= radius**2]
 
 
+def submap_points(
+    T_world_keyframe: np.ndarray, T_world_scans: list[np.ndarray], scans: list[np.ndarray], config: KeyframeConfig
+) -> np.ndarray:
+    """A keyframe's submap [m, keyframe frame]: every scan (N_i, 3) [m, sensor frame], moved by its T_world_scan
+    into the keyframe frame and cropped to `submap_radius`, all voxelised at `submap_voxel`."""
+    T_keyframe_world = np.linalg.inv(T_world_keyframe)
+    moved = [
+        cropped(transform_points(T_keyframe_world @ T_world_scan, points), config.submap_radius)
+        for T_world_scan, points in zip(T_world_scans, scans)
+    ]
+    return voxel_downsample(np.concatenate(moved), config.submap_voxel)
+
+
 class KeyframeBuilder:
     """Starts a keyframe every `distance` metres or `angle_deg` degrees of odometry and accumulates the
     scans that follow it, until the next keyframe, into its submap.
@@ -123,18 +136,11 @@ class KeyframeBuilder:
         if self._key is None:
             return None
         anchor = self._scans[self._anchor(next_change)]
-        T_keyframe_world = np.linalg.inv(anchor.T_world_scan)
-        moved = [
-            cropped(transform_points(T_keyframe_world @ scan.T_world_scan, scan.points), self.config.submap_radius)
-            for scan in self._scans
-        ]
-        keyframe = Keyframe(
-            self._key,
-            anchor.T_world_scan,
-            anchor.frame_index,
-            anchor.travelled,
-            voxel_downsample(np.concatenate(moved), self.config.submap_voxel),
-        )
+        points = submap_points(
+            anchor.T_world_scan, [scan.T_world_scan for scan in self._scans], [scan.points for scan in self._scans],
+            self.config,
+        )  # fmt: skip
+        keyframe = Keyframe(self._key, anchor.T_world_scan, anchor.frame_index, anchor.travelled, points)
         self._key, self._scans = None, []
         return keyframe
 

@@ -20,7 +20,7 @@ from kiss_icp.mapping import get_voxel_hash_map
 from sandro_core.geometry import transform_points
 from sandro_slam.config import KeyframeConfig, SlamConfig
 from sandro_slam.factors import odometry_covariance
-from sandro_slam.keyframes import Keyframe, cropped, voxel_downsample
+from sandro_slam.keyframes import Keyframe, submap_points, voxel_downsample
 from sandro_slam.loop_registration import icp_registration
 from sandro_slam.module import LoopClosure
 from sandro_slam.pose_graph import PoseGraph
@@ -93,15 +93,11 @@ def rebuilt_keyframes(
     rebuilt = []
     for keyframe in keyframes:
         T_world_keyframe = poses[keyframe.anchor_frame]
-        T_keyframe_world = np.linalg.inv(T_world_keyframe)
-        points = [
-            cropped(transform_points(T_keyframe_world @ poses[i], scans[i]), config.submap_radius)
-            for i in np.flatnonzero(keyframe_of_frame == keyframe.key)
-        ]
+        frames = np.flatnonzero(keyframe_of_frame == keyframe.key)
+        points = submap_points(T_world_keyframe, [poses[i] for i in frames], [scans[i] for i in frames], config)
         rebuilt.append(
-            Keyframe(keyframe.key, T_world_keyframe.copy(), keyframe.anchor_frame, keyframe.travelled,
-                     voxel_downsample(np.concatenate(points), config.submap_voxel))
-        )  # fmt: skip
+            Keyframe(keyframe.key, T_world_keyframe.copy(), keyframe.anchor_frame, keyframe.travelled, points)
+        )
     return rebuilt
 
 
