@@ -13,12 +13,15 @@ solution. See docs/back-end.md for the measurements behind the settings below.
 
 from __future__ import annotations
 
+import functools
+
 import gtsam
 import numpy as np
 import scipy.linalg
 from scipy.stats import chi2
 
 from sandro_slam.config import GraphConfig
+from sandro_slam.covariance import FactorCovariances
 from sandro_slam.loop_consistency import supported_loops
 
 GNC_LM_ITERATIONS = 5  # LM iterations per GNC step (gtsam: 100): each step starts from the last
@@ -203,8 +206,8 @@ def _admitted(
     for index in np.flatnonzero(weights >= 0.5):
         kept.add(graph.at(int(index)))
     try:
-        marginals = gtsam.Marginals(kept, values)
-    except RuntimeError:  # poses that only loops outside the seed hold: no covariance to test against
+        covariances = FactorCovariances(kept, values)
+    except ValueError:  # poses that only loops outside the seed hold: no covariance to test against
         return values, weights
     loop_scale, pose_scale = 1.0, 1.0
     if scaled:
@@ -223,7 +226,7 @@ def _admitted(
         A, b = factor.linearize(values).jacobian()  # whitened by the loop's own covariance; columns in key order
         for key in factor.keys():
             if key not in covariance:
-                covariance[key] = marginals.marginalCovariance(key)
+                covariance[key] = covariances.block(key, key)
         S = scipy.linalg.block_diag(*[covariance[key] for key in factor.keys()])
         innovation = float(b @ np.linalg.solve(loop_scale * np.eye(len(b)) + pose_scale * A @ S @ A.T, b))
         if innovation <= threshold:
@@ -235,7 +238,12 @@ def _admitted(
 
 def _chi2_ratio(factor: gtsam.NonlinearFactor, values: gtsam.Values) -> float:
     """The factor's squared whitened error at `values` over the chi-square median of its dimension."""
-    return 2.0 * factor.error(values) / chi2.median(factor.dim())
+    return 2.0 * factor.error(values) / _chi2_median(factor.dim())
+
+
+@functools.cache
+def _chi2_median(dim: int) -> float:
+    return float(chi2.median(dim))
 
 
 def _tail_limit(errors: np.ndarray) -> float:

@@ -1,0 +1,216 @@
+"""The covariances of a factor graph's variables at a solution, every block its factors touch at once.
+
+The information matrix J^T J of the linearised, whitened graph is factorised as L D L^T (scipy's SuperLU with a
+symmetric fill-reducing ordering and no pivoting) and inverted on the pattern of L only (Takahashi's recurrence,
+"selected inversion"): every variable's marginal covariance and the cross-covariance of the variables of every
+factor, for about the cost of the factorisation, instead of one back-substitution per variable. Blocks are in
+gtsam's tangent convention of each variable (the factors' own linearisation: Pose3 [rotation, translation] on the
+right).
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numba
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spl
+
+PATTERN_VALUE = 1e-30  # x the median diagonal: stored on every block a factor touches, so that the pattern is
+# the blocks' (a factor's Jacobian can hold exact zeros); far below any eigenvalue that matters
+
+
+class FactorCovariances:
+    """Covariances of `graph`'s variables at `values` (from the factors' whitened Jacobians).
+
+    Raises:
+        ValueError: the information matrix is singular (a variable no factor determines).
+    """
+
+    def __init__(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values):
+        zeros = values.zeroVectors()
+        self._offset: dict[int, int] = {}
+        self._dim: dict[int, int] = {}
+        size = 0
+        for key in sorted(values.keys()):
+            self._offset[key], self._dim[key] = size, len(zeros.at(key))
+            size += self._dim[key]
+        rows, cols, data, block_rows, block_cols = [], [], [], [], []
+        row = 0
+        for index in range(graph.size()):
+            factor = graph.at(index)
+            A, _ = factor.linearize(values).jacobian()
+            columns = np.concatenate([self._columns(key) for key in factor.keys()])
+            rows.append(np.repeat(np.arange(row, row + A.shape[0]), len(columns)))
+            cols.append(np.tile(columns, A.shape[0]))
+            data.append(A.ravel())
+            block_rows.append(np.repeat(columns, len(columns)))
+            block_cols.append(np.tile(columns, len(columns)))
+            row += A.shape[0]
+        J = sp.csc_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(row, size))
+        information = (J.T @ J).tocsc()
+        touched = np.concatenate(block_rows), np.concatenate(block_cols)
+        value = PATTERN_VALUE * float(np.median(information.diagonal()))
+        information = (information + sp.csc_matrix((np.full(len(touched[0]), value), touched), (size, size))).tocsc()
+        try:
+            lu = spl.splu(information, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                          options={"SymmetricMode": True})  # fmt: skip
+        except RuntimeError as error:
+            raise ValueError(f"singular information matrix: {error}") from None
+        if not np.array_equal(lu.perm_r, lu.perm_c):
+            raise ValueError("the factorisation pivoted: the information matrix is not positive definite")
+        self._position = lu.perm_c  # variable column c sits at row/column perm_c[c] of L
+        # SuperLU leaves out the entries of L that come out exactly zero; the recurrence needs them all: the
+        # symbolic pattern of the permuted matrix, with SuperLU's values where it has them
+        coo = information.tocoo()
+        upper = coo.row != coo.col
+        permuted = sp.csc_matrix(
+            (np.ones(int(upper.sum())), (self._position[coo.row[upper]], self._position[coo.col[upper]])), (size, size)
+        )
+        permuted = sp.triu(permuted, k=1).tocsc()
+        permuted.sort_indices()
+        self._indptr, self._indices = _filled_pattern(
+            permuted.indptr.astype(np.int64), permuted.indices.astype(np.int64)
+        )
+        L = lu.L.tocsc()
+        L.sort_indices()
+        l_values, held = _scattered(
+            self._indptr, self._indices, L.indptr.astype(np.int64), L.indices.astype(np.int64), L.data
+        )
+        if not held:  # cannot happen in exact arithmetic: the symbolic pattern holds every entry of L
+            raise ValueError("the factor has entries off its symbolic pattern")
+        self._z = _selected_inverse(self._indptr, self._indices, l_values, lu.U.diagonal())
+
+    def block(self, a: int, b: int) -> np.ndarray:
+        """Cov(x_a, x_b), (dim a, dim b); a == b gives a's marginal covariance.
+
+        Raises:
+            KeyError: the pair is not on the pattern (no factor joins a and b, and elimination did not join them).
+        """
+        rows, cols = self._position[self._columns(a)], self._position[self._columns(b)]
+        rows, cols = np.broadcast_arrays(rows[:, None], cols[None, :])
+        out = _entries(
+            self._indptr, self._indices, self._z, np.maximum(rows, cols).ravel(), np.minimum(rows, cols).ravel()
+        )
+        if np.isnan(out).any():
+            raise KeyError(f"Cov(x_{a}, x_{b}) is not on the factor's pattern")
+        return out.reshape(rows.shape)
+
+    def _columns(self, key: int) -> np.ndarray:
+        return np.arange(self._offset[key], self._offset[key] + self._dim[key])
+
+
+@numba.njit(cache=True)
+def _entries(indptr: np.ndarray, indices: np.ndarray, z: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """z at (rows[i] >= cols[i]) of the CSC pattern (sorted rows); NaN where the pattern has no such entry."""
+    out = np.full(len(rows), np.nan)
+    for n in range(len(rows)):
+        lo, hi = indptr[cols[n]], indptr[cols[n] + 1]
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if indices[mid] < rows[n]:
+                lo = mid + 1
+            else:
+                hi = mid
+        if lo < indptr[cols[n] + 1] and indices[lo] == rows[n]:
+            out[n] = z[lo]
+    return out
+
+
+@numba.njit(cache=True)
+def _filled_pattern(indptr: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pattern of the Cholesky factor L (CSC, rows sorted, the diagonal first) of a symmetric matrix given by
+    its strictly upper pattern (CSC, `indptr`, `indices`): the elimination tree, then each row of L as the paths
+    up that tree from the row's entries in the matrix (Davis, "Direct Methods for Sparse Linear Systems", ch. 4)."""
+    n = len(indptr) - 1
+    parent = np.full(n, -1)
+    ancestor = np.full(n, -1)
+    for k in range(n):
+        for p in range(indptr[k], indptr[k + 1]):
+            i = indices[p]
+            while i != -1 and i < k:
+                following = ancestor[i]
+                ancestor[i] = k
+                if following == -1:
+                    parent[i] = k
+                i = following
+    counts = np.ones(n, dtype=np.int64)  # the diagonal
+    mark = np.full(n, -1)
+    for k in range(n):
+        mark[k] = k
+        for p in range(indptr[k], indptr[k + 1]):
+            i = indices[p]
+            while mark[i] != k:
+                counts[i] += 1
+                mark[i] = k
+                i = parent[i]
+    l_indptr = np.zeros(n + 1, dtype=np.int64)
+    l_indptr[1:] = np.cumsum(counts)
+    l_indices = np.empty(l_indptr[n], dtype=np.int64)
+    fill = l_indptr[:-1].copy()
+    for j in range(n):
+        l_indices[fill[j]] = j
+        fill[j] += 1
+    mark[:] = -1
+    for k in range(n):  # rows in increasing order: every column's rows come out sorted
+        mark[k] = k
+        for p in range(indptr[k], indptr[k + 1]):
+            i = indices[p]
+            while mark[i] != k:
+                l_indices[fill[i]] = k
+                fill[i] += 1
+                mark[i] = k
+                i = parent[i]
+    return l_indptr, l_indices
+
+
+@numba.njit(cache=True)
+def _scattered(
+    indptr: np.ndarray, indices: np.ndarray, s_indptr: np.ndarray, s_indices: np.ndarray, s_values: np.ndarray
+) -> tuple[np.ndarray, bool]:
+    """The values of a sparse matrix (CSC, sorted rows) laid out on a pattern (zero where it has none); False when
+    the pattern does not hold one of its entries."""
+    values = np.zeros(len(indices))
+    for j in range(len(indptr) - 1):
+        at = indptr[j]
+        for p in range(s_indptr[j], s_indptr[j + 1]):
+            while at < indptr[j + 1] and indices[at] != s_indices[p]:
+                at += 1
+            if at == indptr[j + 1]:
+                return values, False
+            values[at] = s_values[p]
+    return values, True
+
+
+@numba.njit(cache=True)
+def _selected_inverse(indptr: np.ndarray, indices: np.ndarray, l_values: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Z = (L D L^T)^-1 on the pattern of L (CSC, sorted rows, unit diagonal stored first in each column, closed
+    under elimination), in the same layout. Column by column from the last:
+    Z_ij = -sum_k Z_ik L_kj over the rows k > j of column j, Z_jj = 1/D_j - sum_k L_kj Z_kj."""
+    z = np.zeros(len(l_values))
+    for j in range(len(d) - 1, -1, -1):
+        start, end = indptr[j] + 1, indptr[j + 1]  # the rows below the diagonal
+        count = end - start
+        acc = np.zeros(count)
+        for q in range(count):
+            k, l_kj = indices[start + q], l_values[start + q]
+            # Column k of Z holds Z_rk for r >= k: walk it beside the rows of column j at and after k.
+            p = q
+            for at in range(indptr[k], indptr[k + 1]):
+                r = indices[at]
+                while p < count and indices[start + p] < r:
+                    p += 1
+                if p == count:
+                    break
+                if indices[start + p] == r:
+                    if p == q:
+                        acc[q] += z[at] * l_kj
+                    else:
+                        acc[p] += z[at] * l_kj
+                        acc[q] += z[at] * l_values[start + p]
+        diagonal = 1.0 / d[j]
+        for p in range(count):
+            z[start + p] = -acc[p]
+            diagonal += l_values[start + p] * acc[p]
+        z[indptr[j]] = diagonal
+    return z

@@ -1,0 +1,78 @@
+"""FactorCovariances: every block a factor touches equals gtsam's marginals."""
+
+import gtsam
+import numpy as np
+import pytest
+
+from sandro_slam.covariance import FactorCovariances
+
+
+def _loop_graph(is3d: bool, poses: int = 40, loops: int = 15, seed: int = 0):
+    """A noisy odometry chain with a prior and random loops; the values are perturbed ground truth."""
+    rng = np.random.default_rng(seed)
+    if is3d:
+        pose = gtsam.Pose3
+        noise = gtsam.noiseModel.Gaussian.Covariance(np.diag(rng.uniform(0.01, 0.1, 6)) + 0.001)
+
+        def random_pose(scale):
+            return gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(0, 0.3 * scale, 3)), rng.normal(0, scale, 3))
+
+        between, prior = gtsam.BetweenFactorPose3, gtsam.PriorFactorPose3
+        prior_noise = gtsam.noiseModel.Isotropic.Sigma(6, 1e-3)
+    else:
+        pose = gtsam.Pose2
+        noise = gtsam.noiseModel.Gaussian.Covariance(np.diag(rng.uniform(0.01, 0.1, 3)) + 0.001)
+
+        def random_pose(scale):
+            return gtsam.Pose2(*rng.normal(0, scale, 2), rng.normal(0, 0.3 * scale))
+
+        between, prior = gtsam.BetweenFactorPose2, gtsam.PriorFactorPose2
+        prior_noise = gtsam.noiseModel.Isotropic.Sigma(3, 1e-3)
+    truth = [pose()]
+    for _ in range(poses - 1):
+        truth.append(truth[-1].compose(random_pose(1.0)))
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(prior(0, truth[0], prior_noise))
+    for i in range(poses - 1):
+        graph.add(between(i, i + 1, truth[i].between(truth[i + 1]).compose(random_pose(0.01)), noise))
+    for _ in range(loops):
+        a, b = sorted(rng.choice(poses, 2, replace=False))
+        graph.add(between(int(a), int(b), truth[a].between(truth[b]), noise))
+    values = gtsam.Values()
+    for i, T in enumerate(truth):
+        values.insert(i, T.compose(random_pose(0.05)))
+    return graph, values
+
+
+@pytest.mark.parametrize("is3d", [False, True])
+def test_blocks_equal_gtsam_marginals(is3d):
+    graph, values = _loop_graph(is3d)
+    covariances = FactorCovariances(graph, values)
+    marginals = gtsam.Marginals(graph, values)
+    for key in range(40):
+        expected = marginals.marginalCovariance(key)
+        np.testing.assert_allclose(
+            covariances.block(key, key), expected, rtol=1e-8, atol=1e-12 * np.abs(expected).max()
+        )
+    for index in range(graph.size()):
+        keys = graph.at(index).keys()
+        if len(keys) != 2:
+            continue
+        joint = marginals.jointMarginalCovariance(gtsam.KeyVector(list(keys))).fullMatrix()
+        d = joint.shape[0] // 2
+        np.testing.assert_allclose(covariances.block(*keys), joint[:d, d:], atol=1e-9 * np.abs(joint).max())
+        np.testing.assert_allclose(covariances.block(keys[1], keys[0]), joint[d:, :d], atol=1e-9 * np.abs(joint).max())
+
+
+def test_pair_off_the_pattern_is_refused():
+    graph, values = _loop_graph(False, poses=10, loops=0)  # a chain: eliminating it joins only neighbours
+    covariances = FactorCovariances(graph, values)
+    with pytest.raises(KeyError):
+        covariances.block(0, 9)
+
+
+def test_undetermined_variable_is_refused():
+    graph, values = _loop_graph(False, poses=10, loops=0)
+    values.insert(99, gtsam.Pose2())  # no factor holds it
+    with pytest.raises(ValueError):
+        FactorCovariances(graph, values)
