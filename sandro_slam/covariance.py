@@ -63,11 +63,9 @@ class FactorCovariances:
         # SuperLU leaves out the entries of L that come out exactly zero; the recurrence needs them all: the
         # symbolic pattern of the permuted matrix, with SuperLU's values where it has them
         coo = information.tocoo()
-        upper = coo.row != coo.col
-        permuted = sp.csc_matrix(
-            (np.ones(int(upper.sum())), (self._position[coo.row[upper]], self._position[coo.col[upper]])), (size, size)
-        )
-        permuted = sp.triu(permuted, k=1).tocsc()
+        rows, cols = self._position[coo.row], self._position[coo.col]
+        upper = rows < cols
+        permuted = sp.csc_matrix((np.ones(int(upper.sum())), (rows[upper], cols[upper])), (size, size))
         permuted.sort_indices()
         self._indptr, self._indices = _filled_pattern(
             permuted.indptr.astype(np.int64), permuted.indices.astype(np.int64)
