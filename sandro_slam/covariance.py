@@ -35,18 +35,26 @@ class FactorCovariances:
         for key in sorted(values.keys()):
             self._offset[key], self._dim[key] = size, len(zeros.at(key))
             size += self._dim[key]
-        rows, cols, data, block_rows, block_cols = [], [], [], [], []
-        row = 0
+        groups: dict[tuple[int, int], tuple[list[np.ndarray], list[list[int]]]] = {}  # by Jacobian shape
         for index in range(graph.size()):
             factor = graph.at(index)
             A, _ = factor.linearize(values).jacobian()
-            columns = np.concatenate([self._columns(key) for key in factor.keys()])
-            rows.append(np.repeat(np.arange(row, row + A.shape[0]), len(columns)))
-            cols.append(np.tile(columns, A.shape[0]))
+            jacobians, columns = groups.setdefault(A.shape, ([], []))
+            jacobians.append(A)
+            columns.append(
+                [c for key in factor.keys() for c in range(self._offset[key], self._offset[key] + self._dim[key])]
+            )
+        rows, cols, data, block_rows, block_cols = [], [], [], [], []
+        row = 0
+        for (m, k), (jacobians, columns) in groups.items():
+            A, C = np.stack(jacobians), np.array(columns)  # (factors, m, k), (factors, k)
+            first = row + m * np.arange(len(C))
+            rows.append(np.broadcast_to((first[:, None] + np.arange(m))[:, :, None], A.shape).ravel())
+            cols.append(np.broadcast_to(C[:, None, :], A.shape).ravel())
             data.append(A.ravel())
-            block_rows.append(np.repeat(columns, len(columns)))
-            block_cols.append(np.tile(columns, len(columns)))
-            row += A.shape[0]
+            block_rows.append(np.broadcast_to(C[:, :, None], (len(C), k, k)).ravel())
+            block_cols.append(np.broadcast_to(C[:, None, :], (len(C), k, k)).ravel())
+            row += m * len(C)
         J = sp.csc_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(row, size))
         information = (J.T @ J).tocsc()
         touched = np.concatenate(block_rows), np.concatenate(block_cols)
@@ -92,6 +100,19 @@ class FactorCovariances:
         )
         if np.isnan(out).any():
             raise KeyError(f"Cov(x_{a}, x_{b}) is not on the factor's pattern")
+        return out.reshape(rows.shape)
+
+    def joint(self, keys: list[int]) -> np.ndarray:
+        """The joint covariance of the variables `keys` (stacked in that order), e.g. those of one factor.
+
+        Raises:
+            KeyError: a pair is not on the pattern.
+        """
+        positions = self._position[np.concatenate([self._columns(key) for key in keys])]
+        rows, cols = np.maximum.outer(positions, positions), np.minimum.outer(positions, positions)
+        out = _entries(self._indptr, self._indices, self._z, rows.ravel(), cols.ravel())
+        if np.isnan(out).any():
+            raise KeyError(f"the joint covariance of {list(keys)} is not on the factor's pattern")
         return out.reshape(rows.shape)
 
     def _columns(self, key: int) -> np.ndarray:

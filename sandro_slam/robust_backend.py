@@ -8,7 +8,9 @@ least-squares solve. Where too few loops have neighbours to agree with, graduate
 the TLS solution from the start instead, as it does for the Geman-McClure cost. When the solution bends the
 odometry beyond its covariances, TLS is also judged from the initial values (the odometry) and the solution of
 lower TLS cost stands: loops aliased by a repeated structure agree with each other, and can be grown into such a
-solution. See docs/back-end.md for the measurements behind the settings below.
+solution. Last, a loop whose removal would lower the cost of the rest beyond chance goes: a wrong loop can bend
+poses that long odometry holds loosely until its own error is small. See docs/back-end.md for the measurements
+behind the settings below.
 """
 
 from __future__ import annotations
@@ -42,6 +44,13 @@ SEED_ADMISSION_FACTOR = 1.5  # on the inlier threshold, of the innovation test a
 # poses where the seed loops are sparse are still far from where all loops put them
 ADMISSION_ROUNDS = 2  # innovation tests, each followed by TLS from the loops it admits
 MAX_TLS_ROUNDS = 10  # solve-and-judge rounds (they end when the kept loops no longer change)
+MAX_REMOVAL_ROUNDS = 3  # removal tests after the growth, each followed by TLS without the loops it removes
+REMOVAL_SIGMAS = 3.0  # a loop is removed only when its removal cost drop also lies this many robust standard
+# deviations (in log10) above the kept loops' median drop: real loops of graphs whose errors are heavy-tailed
+# exceed the chi-square bound, but not their own distribution (a chi-square's lie within 2.7-3.0 to 1e-5)
+REMOVAL_SHARE = 0.5  # a loop over its bound is removed in a round when its excess (removal cost drop over the
+# bound, less 1) is at least this share of the round's largest: a wrong loop bends the graph under the real
+# loops near it, and their excess falls once it is gone
 READMIT_SIGMAS = 7.0  # noise_scale 'estimated': a rejected loop comes back when its log squared error is within
 # this many robust standard deviations of the kept loops'
 
@@ -57,7 +66,8 @@ def robust_optimize(
     least `MIN_SEED_LOOPS` of them fit together (`_seeded`), grown by the innovation test (`_grown`); else
     gtsam's GncLMOptimizer from `initial` with `known_inliers` (prior and odometry factor indices) never
     down-weighted (`_gnc`). When that solution strains the known inliers (`_strained`), TLS is also judged from
-    `initial` (`_truncated`) and the solution of lower TLS cost stands (`_lower_cost`). gnc_gm: always
+    `initial` (`_truncated`) and the solution of lower TLS cost stands (`_lower_cost`). Grown from seeds, the
+    loops whose removal would lower the others' cost beyond chance go (`_pruned`). gnc_gm: always
     GncLMOptimizer with the Geman-McClure cost. Then Levenberg-Marquardt to convergence (`REFINE_RELATIVE_TOL`)
     on the factors kept.
     With `noise_scale: estimated`, for graphs whose covariances are not to scale: when the loops the first run
@@ -84,6 +94,8 @@ def robust_optimize(
     if config.robust == "gnc_tls" and _strained(graph, values, known_inliers):
         judged = _truncated(graph, initial, np.ones(graph.size()), known_inliers, thresholds)
         values, weights = _lower_cost(graph, (values, weights), judged, known_inliers, thresholds)
+    if seeded is not None:
+        values, weights = _pruned(graph, values, weights, known_inliers, thresholds, config.inlier_probability)
     values = _refined(graph, values, weights)
     if config.noise_scale == "estimated" and len(set(dims)) == 1:
         scale = variance_factor(graph, values, weights, known_inliers)
@@ -116,6 +128,53 @@ def _grown(
         values, candidates = _admitted(graph, values, weights, known_inliers, thresholds * factor, scaled)
         if np.array_equal(candidates, weights):
             break
+        values, weights = _truncated(graph, values, candidates, known_inliers, thresholds)
+    return values, weights
+
+
+def _pruned(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    weights: np.ndarray,
+    known_inliers: list[int],
+    thresholds: np.ndarray,
+    probability: float,
+) -> tuple[gtsam.Values, np.ndarray]:
+    """The removal test on the kept loops of the solution (`values`, `weights`).
+
+    Where the poses are held loosely (long odometry, few loops), a wrong loop bends them until its own error is
+    far below its threshold, and TLS judged on errors keeps it. What it costs the rest shows in the cost drop of
+    removing it, r^T (I - M)^-1 r, r its whitened error and M = A Sigma A^T its whitened Jacobian A through the
+    covariance Sigma of its poses at the solution (exact for the linearised graph): for a real loop that is its
+    innovation against all other factors, chi-square distributed. A loop is removed when its drop exceeds the
+    chi-square quantile at `probability` for the whole set of kept loops (1 - (1 - probability) / their number:
+    at the per-loop quantile, TLS's threshold, one real loop in a hundred would go), and the tail of the kept
+    loops' drops (`REMOVAL_SIGMAS`: real loops of graphs with heavy-tailed errors exceed the first). Of those,
+    the ones within `REMOVAL_SHARE` of the largest excess go for good, TLS among the other loops of `weights`
+    (`_truncated`, at `thresholds`) is solved again, up to `MAX_REMOVAL_ROUNDS` times."""
+    loops = _loop_indices(graph.size(), known_inliers)
+    dims = np.array([graph.at(int(i)).dim() for i in loops])
+    candidates = weights.copy()
+    for _ in range(MAX_REMOVAL_ROUNDS):
+        mine = weights[loops] >= 0.5
+        if mine.sum() < MIN_LOOPS_FOR_SCALE:  # too few drops for their tail
+            break
+        try:
+            covariances = FactorCovariances(_kept(graph, weights), values)
+        except ValueError:
+            break
+        drops = np.zeros(len(loops))
+        for n in np.flatnonzero(mine):
+            factor = graph.at(int(loops[n]))
+            A, b = factor.linearize(values).jacobian()
+            S = covariances.joint(list(factor.keys()))
+            drops[n] = float(b @ np.linalg.solve(np.eye(len(b)) - A @ S @ A.T, b))
+        limits = chi2.isf((1.0 - probability) / mine.sum(), dims)
+        excess = np.where(drops > _tail_limit(drops[mine], REMOVAL_SIGMAS), drops / limits - 1.0, 0.0)
+        if excess.max() <= 0.0:
+            break
+        candidates[loops[(excess > 0.0) & (excess >= REMOVAL_SHARE * excess.max())]] = 0.0
+        values = _refined(graph, values, candidates, relative_tol=SEED_RELATIVE_TOL)
         values, weights = _truncated(graph, values, candidates, known_inliers, thresholds)
     return values, weights
 
@@ -202,9 +261,7 @@ def _admitted(
     outside = [(int(i), t) for i, t in zip(loops, thresholds) if weights[i] < 0.5]
     if not outside:
         return values, weights
-    kept = gtsam.NonlinearFactorGraph()
-    for index in np.flatnonzero(weights >= 0.5):
-        kept.add(graph.at(int(index)))
+    kept = _kept(graph, weights)
     try:
         covariances = FactorCovariances(kept, values)
     except ValueError:  # poses that only loops outside the seed hold: no covariance to test against
@@ -246,13 +303,13 @@ def _chi2_median(dim: int) -> float:
     return float(chi2.median(dim))
 
 
-def _tail_limit(errors: np.ndarray) -> float:
-    """The largest squared whitened error within `READMIT_SIGMAS` robust standard deviations (1.4826 x median
-    absolute deviation, in log10) above the median of `errors`."""
+def _tail_limit(errors: np.ndarray, sigmas: float = READMIT_SIGMAS) -> float:
+    """The largest squared whitened error within `sigmas` robust standard deviations (1.4826 x median absolute
+    deviation, in log10) above the median of `errors`."""
     log_error = np.log10(np.maximum(errors, 1e-300))
     median = np.median(log_error)
     sigma = 1.4826 * np.median(np.abs(log_error - median))
-    return float(10.0 ** (median + READMIT_SIGMAS * sigma))
+    return float(10.0 ** (median + sigmas * sigma))
 
 
 def _truncated(
@@ -304,14 +361,19 @@ def _refined(
     relative_tol: float = REFINE_RELATIVE_TOL,
 ) -> gtsam.Values:
     """Levenberg-Marquardt to convergence (`relative_tol`) on the factors of weight >= 0.5."""
-    kept = gtsam.NonlinearFactorGraph()
-    for index in np.flatnonzero(weights >= 0.5):
-        kept.add(graph.at(int(index)))
     params = gtsam.LevenbergMarquardtParams()
     params.setRelativeErrorTol(relative_tol)
     params.setAbsoluteErrorTol(0.0)
     params.setMaxIterations(MAX_LM_ITERATIONS)
-    return gtsam.LevenbergMarquardtOptimizer(kept, values, params).optimize()
+    return gtsam.LevenbergMarquardtOptimizer(_kept(graph, weights), values, params).optimize()
+
+
+def _kept(graph: gtsam.NonlinearFactorGraph, weights: np.ndarray) -> gtsam.NonlinearFactorGraph:
+    """The factors of `graph` of weight >= 0.5."""
+    kept = gtsam.NonlinearFactorGraph()
+    for index in np.flatnonzero(weights >= 0.5):
+        kept.add(graph.at(int(index)))
+    return kept
 
 
 def variance_factor(

@@ -62,6 +62,7 @@ def test_blocks_equal_gtsam_marginals(is3d):
         d = joint.shape[0] // 2
         np.testing.assert_allclose(covariances.block(*keys), joint[:d, d:], atol=1e-9 * np.abs(joint).max())
         np.testing.assert_allclose(covariances.block(keys[1], keys[0]), joint[d:, :d], atol=1e-9 * np.abs(joint).max())
+        np.testing.assert_allclose(covariances.joint(list(keys)), joint, rtol=1e-8, atol=1e-9 * np.abs(joint).max())
 
 
 def test_pair_off_the_pattern_is_refused():
@@ -69,6 +70,8 @@ def test_pair_off_the_pattern_is_refused():
     covariances = FactorCovariances(graph, values)
     with pytest.raises(KeyError):
         covariances.block(0, 9)
+    with pytest.raises(KeyError):
+        covariances.joint([0, 9])
 
 
 def test_undetermined_variable_is_refused():

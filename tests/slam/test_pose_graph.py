@@ -11,7 +11,17 @@ from sandro_core.geometry import transform_points
 from sandro_slam.config import GraphConfig
 from sandro_slam.factors import between_factor, odometry_covariance
 from sandro_slam.pose_graph import PoseGraph
-from sandro_slam.robust_backend import _gnc, _refined, _scaled_run_wins, readmitted, robust_optimize, variance_factor
+from sandro_slam.robust_backend import (
+    _gnc,
+    _loop_indices,
+    _pruned,
+    _refined,
+    _scaled_run_wins,
+    _truncated,
+    readmitted,
+    robust_optimize,
+    variance_factor,
+)
 
 
 def test_loop_factor_whitened_error_matches_registration_monte_carlo():
@@ -368,3 +378,42 @@ def test_an_aliased_cluster_that_bends_good_odometry_is_rejected(seed):
     assert all(loop.weight < 0.5 for loop in graph.loops if loop.factor_index in aliased)
     assert all(loop.weight >= 0.5 for loop in graph.loops if loop.factor_index not in aliased)
     assert max(np.linalg.norm(poses[i][:3, 3] - truth[i][:3, 3]) for i in range(len(truth))) < 0.3
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_wrong_loop_absorbed_by_loosely_held_poses_is_removed(seed):
+    """A circle of 40 poses: real loops (tight: 5 mrad, 5 cm) hold poses 0-19 together; poses 20-39 hang on loose
+    odometry only (20 mrad, 20 cm a step). A wrong loop between 24 and 36, 8 m and 0.2 rad off, bends those poses
+    until its own error is far below its threshold, so TLS judged on errors keeps it; removing it would lower the
+    cost of the rest by far more than its threshold: the removal test drops it, and no real loop."""
+    rng = np.random.default_rng(seed)
+    truth, _ = _chain(40, rng, drift=0.0)
+    odometry_sigmas, loop_sigmas = np.array([0.02] * 3 + [0.2] * 3), np.array([0.005] * 3 + [0.05] * 3)
+
+    def factor(a: int, b: int, sigmas: np.ndarray, offset: np.ndarray | None = None) -> gtsam.BetweenFactorPose3:
+        delta = rng.normal(scale=sigmas) if offset is None else offset
+        measured = gtsam.Pose3(np.linalg.inv(truth[a]) @ truth[b]).compose(gtsam.Pose3.Expmap(delta))
+        return gtsam.BetweenFactorPose3(a, b, measured, gtsam.noiseModel.Diagonal.Sigmas(sigmas))
+
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(truth[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-3)))
+    initial = gtsam.Values()
+    initial.insert(0, gtsam.Pose3(truth[0]))
+    for i in range(1, 40):
+        graph.add(factor(i - 1, i, odometry_sigmas))
+        initial.insert(i, initial.atPose3(i - 1).compose(graph.at(i).measured()))
+    known = list(range(graph.size()))
+    for a in range(16):
+        graph.add(factor(a, a + 4, loop_sigmas))
+        graph.add(factor(a, a + 3, loop_sigmas))
+    wrong = graph.size()
+    graph.add(factor(24, 36, loop_sigmas, np.array([0.0, 0.0, 0.2, 8.0, 0.0, 0.0])))
+    thresholds = np.full(len(_loop_indices(graph.size(), known)), chi2.ppf(GraphConfig().inlier_probability, 6))
+    values, weights = _truncated(graph, _refined(graph, initial, np.ones(graph.size())), np.ones(graph.size()),
+                                 known, thresholds)  # fmt: skip
+    assert weights[wrong] == 1.0 and 2.0 * graph.at(wrong).error(values) < 0.1 * thresholds[0]
+    values, weights = _pruned(graph, values, weights, known, thresholds, GraphConfig().inlier_probability)
+    assert weights[wrong] == 0.0 and np.all(np.delete(weights, wrong) == 1.0)
+    clean = _refined(graph, initial, weights)
+    offsets = [values.atPose3(i).translation() - clean.atPose3(i).translation() for i in range(40)]
+    assert np.linalg.norm(offsets, axis=1).max() < 1e-3
