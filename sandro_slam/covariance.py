@@ -93,27 +93,26 @@ class FactorCovariances:
         Raises:
             KeyError: the pair is not on the pattern (no factor joins a and b, and elimination did not join them).
         """
-        rows, cols = self._position[self._columns(a)], self._position[self._columns(b)]
-        rows, cols = np.broadcast_arrays(rows[:, None], cols[None, :])
-        out = _entries(
-            self._indptr, self._indices, self._z, np.maximum(rows, cols).ravel(), np.minimum(rows, cols).ravel()
-        )
-        if np.isnan(out).any():
-            raise KeyError(f"Cov(x_{a}, x_{b}) is not on the factor's pattern")
-        return out.reshape(rows.shape)
+        return self._gathered(self._columns(a), self._columns(b), f"Cov(x_{a}, x_{b})")
 
     def joint(self, keys: list[int]) -> np.ndarray:
         """The joint covariance of the variables `keys` (stacked in that order), e.g. those of one factor.
 
         Raises:
-            KeyError: a pair is not on the pattern.
+            KeyError: a pair of them is not on the pattern.
         """
-        positions = self._position[np.concatenate([self._columns(key) for key in keys])]
-        rows, cols = np.maximum.outer(positions, positions), np.minimum.outer(positions, positions)
-        out = _entries(self._indptr, self._indices, self._z, rows.ravel(), cols.ravel())
+        columns = np.concatenate([self._columns(key) for key in keys])
+        return self._gathered(columns, columns, f"the joint covariance of {list(keys)}")
+
+    def _gathered(self, rows: np.ndarray, cols: np.ndarray, what: str) -> np.ndarray:
+        """The covariance entries at variable columns `rows` x `cols`; KeyError naming `what` off the pattern."""
+        rows, cols = self._position[rows], self._position[cols]
+        # Z is stored on and below its diagonal: each entry at (the larger, the smaller) of its two positions
+        z_rows, z_cols = np.maximum.outer(rows, cols), np.minimum.outer(rows, cols)
+        out = _entries(self._indptr, self._indices, self._z, z_rows.ravel(), z_cols.ravel())
         if np.isnan(out).any():
-            raise KeyError(f"the joint covariance of {list(keys)} is not on the factor's pattern")
-        return out.reshape(rows.shape)
+            raise KeyError(f"{what} is not on the factor's pattern")
+        return out.reshape(z_rows.shape)
 
     def _columns(self, key: int) -> np.ndarray:
         return np.arange(self._offset[key], self._offset[key] + self._dim[key])
