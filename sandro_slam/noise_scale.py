@@ -14,6 +14,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from sandro_slam.covariance import FactorCovariances
 from sandro_slam.factors import scaled_noise
 
 MIN_LOOPS = 10  # kept loops needed to estimate the scale
@@ -42,8 +43,9 @@ def rescale_odometry(
         for i in odometry:
             scaled.add(scaled_noise(graph.at(i), scale))
         values = _optimized(scaled, values)
-        loop_fit = _variance_factor(scaled, values, range(len(others), first_odometry))
-        odometry_fit = _variance_factor(scaled, values, range(first_odometry, scaled.size()))
+        covariances = FactorCovariances(scaled, values)
+        loop_fit = _variance_factor(scaled, values, covariances, range(len(others), first_odometry))
+        odometry_fit = _variance_factor(scaled, values, covariances, range(first_odometry, scaled.size()))
         # The odometry's factor moves by the ratio squared: the plain ratio approaches it only slowly when the
         # model is far off.
         target = float(np.clip(scale * (odometry_fit / loop_fit) ** 2, MIN_SCALE, 1.0))
@@ -54,17 +56,17 @@ def rescale_odometry(
     return values, scale
 
 
-def _variance_factor(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, indices: range) -> float:
+def _variance_factor(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, covariances: FactorCovariances, indices: range
+) -> float:
     """Squared whitened residuals of the factors at `indices` over their redundancy: sum of dim - tr(A S A^T), A the
-    whitened Jacobian of a factor and S the joint marginal covariance of its variables."""
-    marginals = gtsam.Marginals(graph, values)
+    whitened Jacobian of a factor and S the joint covariance of its variables (`covariances`, of `graph` at
+    `values`)."""
     squared, redundancy = 0.0, 0.0
     for i in indices:
         factor = graph.at(i)
-        keys = list(factor.keys())
         A, _ = factor.linearize(values).jacobian()
-        joint = marginals.jointMarginalCovariance(gtsam.KeyVector(keys))
-        S = np.block([[joint.at(a, b) for b in keys] for a in keys])
+        S = covariances.joint(list(factor.keys()))
         redundancy += factor.dim() - float(np.trace(A @ S @ A.T))
         squared += 2.0 * factor.error(values)
     return squared / max(redundancy, 1e-12)
