@@ -1,4 +1,5 @@
-"""Loop candidates: keyframes near the new one in the current estimate, and place recognition."""
+"""Loop candidates: keyframes near the new one in the current estimate, and place recognition (MapClosures' density
+images, ring keys)."""
 
 from __future__ import annotations
 
@@ -85,3 +86,46 @@ class PlaceRecognition:
     def _density_map_points(self, points: np.ndarray) -> np.ndarray:
         # Cropping the submap for the density map keeps the revisits it finds here at a ninth of the time.
         return points[np.linalg.norm(points[:, :2], axis=1) <= self.config.map_closures_radius]
+
+
+def ring_key(
+    points: np.ndarray,
+    radius: float,
+    rings: int = 10,
+    sectors: int = 60,
+    heights: tuple[float, ...] = (-1.0, 1.0, 4.0, 10.0),
+) -> np.ndarray:
+    """A yaw-invariant place descriptor of a submap (points in the keyframe frame, z up [m]): per height band
+    (edges `heights` above the keyframe origin) and ring (up to `radius`), the share of azimuth sectors
+    holding a point."""
+    r = np.linalg.norm(points[:, :2], axis=1)
+    inside = r < radius
+    ring = (r[inside] / radius * rings).astype(int)
+    sector = ((np.arctan2(points[inside, 1], points[inside, 0]) + np.pi) / (2 * np.pi) * sectors).astype(int)
+    band = np.digitize(points[inside, 2], heights)
+    occupied = np.zeros((len(heights) + 1, rings, sectors))
+    occupied[band, ring, sector % sectors] = 1.0
+    return occupied.mean(axis=2).ravel()
+
+
+class RingKeyRecognition:
+    """Earlier keyframes whose submaps have the nearest ring keys: finds revisits that drift hides where
+    MapClosures' density images hold too few features (rooms and corridors, narrow fields of view)."""
+
+    def __init__(self, config: LoopDetectionConfig):
+        self.config = config
+        self._keys: list[int] = []
+        self._descriptors: list[np.ndarray] = []
+
+    def candidates(self, key: int, points: np.ndarray, travelled: dict[int, float]) -> list[int]:
+        """Add keyframe `key`'s submap (keyframe frame) and return the `ring_key_candidates` earlier keyframes,
+        at least `exclude_recent` metres of travel back, with the nearest ring keys, nearest first."""
+        descriptor = ring_key(points, self.config.ring_key_radius)
+        back = self.config.exclude_recent
+        earlier = [i for i, other in enumerate(self._keys) if travelled[key] - travelled[other] >= back]
+        self._keys.append(key)
+        self._descriptors.append(descriptor)
+        if not earlier:
+            return []
+        distances = np.linalg.norm(np.array([self._descriptors[i] for i in earlier]) - descriptor, axis=1)
+        return [self._keys[earlier[i]] for i in np.argsort(distances, kind="stable")[: self.config.ring_key_candidates]]

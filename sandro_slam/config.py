@@ -50,6 +50,17 @@ class LoopDetectionConfig(StrictModel):
         "span 2 x map_closures_radius)",
         True,
     )
+    max_drift: float = Field(
+        0.1,
+        ge=0.0,
+        description="a verified loop may place its keyframe at most `radius` plus this share of the path travelled "
+        "between the two keyframes away from the current estimate (place recognition finds revisits beyond the "
+        "radius; what lies further is taken for an alias of repeated structure)",
+    )
+    ring_key_candidates: int = Field(
+        1, ge=0, description="earlier keyframes with the most similar ring keys registered per keyframe (0: none)"
+    )
+    ring_key_radius: float | None = scaled(30.0, "submap points within this range [m] form its ring key")
     in_background: bool = Field(
         True,
         description="OfflineSlam, on more than one core: loop closure in a worker process at the lowest CPU "

@@ -10,7 +10,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from sandro_core import register
-from sandro_core.features import fpfh_features, mutual_matches
+from sandro_core.features import NORMAL_MAX_NN, NORMAL_RADIUS_FACTOR, fpfh_features, mutual_matches
 from sandro_slam.config import LoopRegistrationConfig
 
 MIN_SUBMAP_POINTS = 10  # a submap with fewer points is not described nor registered
@@ -23,8 +23,8 @@ class SubmapDescription:
 
     keypoints: np.ndarray  # (K, 3) FPFH keypoints
     descriptors: np.ndarray  # (K, 33)
-    cloud: o3d.geometry.PointCloud  # the keypoints with their normals: ICP's target side
-    icp_points: o3d.geometry.PointCloud  # the submap at icp_voxel: ICP's source side and the overlap check
+    cloud: o3d.geometry.PointCloud  # the keypoints with their normals
+    icp_points: o3d.geometry.PointCloud  # the submap at icp_voxel with normals: both sides of ICP, the overlap check
     tree: cKDTree  # of the descriptors, built once for every pair the keyframe takes part in
 
     def __getstate__(self) -> dict[str, np.ndarray]:
@@ -34,6 +34,7 @@ class SubmapDescription:
             "descriptors": self.descriptors,
             "normals": np.asarray(self.cloud.normals),
             "icp_points": np.asarray(self.icp_points.points),
+            "icp_normals": np.asarray(self.icp_points.normals),
         }
 
     def __setstate__(self, state: dict[str, np.ndarray]) -> None:
@@ -42,6 +43,7 @@ class SubmapDescription:
         self.cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(arrays["keypoints"]))
         self.cloud.normals = o3d.utility.Vector3dVector(arrays["normals"])
         self.icp_points = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(arrays["icp_points"]))
+        self.icp_points.normals = o3d.utility.Vector3dVector(arrays["icp_normals"])
         self.tree = cKDTree(self.descriptors)
 
 
@@ -52,7 +54,7 @@ class PairRegistration:
     T_target_source: np.ndarray
     covariance: np.ndarray  # 6x6 from SANDRO's final weights, gtsam order, right perturbation
     inliers: int
-    overlap: float  # share of the source's icp_points within icp_max_distance of target keypoints, aligned
+    overlap: float  # share of the source's icp_points within icp_max_distance of the target's, aligned
     accepted: bool
     reason: str  # why it was rejected ("" if accepted)
     time_s: float
@@ -60,20 +62,21 @@ class PairRegistration:
 
 def describe_submap(points: np.ndarray, config: LoopRegistrationConfig) -> SubmapDescription:
     """FPFH keypoints, descriptors and normals (oriented towards the keyframe origin) of a submap, and the
-    submap at `icp_voxel`."""
+    submap at `icp_voxel` with normals."""
     cloud, descriptors = fpfh_features(points, config.fpfh_voxel, np.zeros(3), config.fpfh_max_nn)
-    icp_points = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(config.icp_voxel)
-    return SubmapDescription(np.asarray(cloud.points), descriptors, cloud, icp_points, cKDTree(descriptors))
+    return SubmapDescription(
+        np.asarray(cloud.points), descriptors, cloud, _with_normals(points, config.icp_voxel), cKDTree(descriptors)
+    )
 
 
 def register_submaps(
     target: SubmapDescription, source: SubmapDescription, config: LoopRegistrationConfig
 ) -> PairRegistration:
     """Estimate T_target_source between two submaps and verify it: SANDRO on FPFH matches, then
-    point-to-plane ICP of the source's `icp_points` onto the target's keypoints, whose fitness is the overlap.
+    point-to-plane ICP of the source's `icp_points` onto the target's, whose fitness is the overlap.
 
-    Point-to-plane ICP needs normals on the target side only; a source denser than the keypoints averages more
-    points, which brings the loops closer to the truth.
+    ICP works at `icp_voxel` on both sides: onto the coarser FPFH keypoints, the loops lay further from the
+    truth (docs/benchmarks.md).
     """
     start = time.perf_counter()
     source_idx, target_idx = mutual_matches(source.descriptors, target.descriptors, source.tree, target.tree)
@@ -84,10 +87,10 @@ def register_submaps(
         return _rejected(f"{len(result.inliers)} SANDRO inliers", start, result.transformation)
     T = result.transformation
     if config.icp_refine:
-        T, overlap = _icp(source.icp_points, target.cloud, T, config)
+        T, overlap = _icp(source.icp_points, target.icp_points, T, config)
     else:
         overlap = o3d.pipelines.registration.evaluate_registration(
-            source.icp_points, target.cloud, config.icp_max_distance, T
+            source.icp_points, target.icp_points, config.icp_max_distance, T
         ).fitness
     accepted = overlap >= config.min_overlap
     return PairRegistration(
@@ -104,13 +107,18 @@ def register_submaps(
 def icp_registration(
     target: np.ndarray, source: np.ndarray, T_target_source: np.ndarray, config: LoopRegistrationConfig
 ) -> tuple[np.ndarray, float]:
-    """(T_target_source, overlap) of `register_submaps`' ICP alone, from a guess: the source submap (N, 3) at
-    `icp_voxel` onto the target submap (M, 3) at `fpfh_voxel` with normals (radius of 2 voxels), both in their
-    keyframe frames."""
-    target_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target)).voxel_down_sample(config.fpfh_voxel)
-    target_cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(2.0 * config.fpfh_voxel, 30))
+    """(T_target_source, overlap) of `register_submaps`' ICP alone, from a guess: the source submap (N, 3) onto
+    the target submap (M, 3), both at `icp_voxel` and in their keyframe frames."""
     source_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source)).voxel_down_sample(config.icp_voxel)
-    return _icp(source_cloud, target_cloud, T_target_source, config)
+    return _icp(source_cloud, _with_normals(target, config.icp_voxel), T_target_source, config)
+
+
+def _with_normals(points: np.ndarray, voxel: float) -> o3d.geometry.PointCloud:
+    """`points` (N, 3) at `voxel` [m], with normals as FPFH's (point-to-plane ICP's target side; their signs do
+    not matter there)."""
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel)
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(NORMAL_RADIUS_FACTOR * voxel, NORMAL_MAX_NN))
+    return cloud
 
 
 def _icp(

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from sandro_slam.candidates import PlaceRecognition, radius_candidates
+from sandro_slam.candidates import PlaceRecognition, RingKeyRecognition, radius_candidates
 from sandro_slam.config import SlamConfig
 from sandro_slam.factors import between_factor, odometry_covariance
 from sandro_slam.loop_registration import MIN_SUBMAP_POINTS, SubmapDescription, describe_submap, register_submaps
@@ -25,7 +25,7 @@ class LoopClosure:
     covariance: np.ndarray  # 6x6, gtsam Pose3 order [rotation, translation], right perturbation
     inliers: int  # SANDRO inliers among the FPFH matches
     overlap: float  # share of source submap points near the target submap after alignment
-    found_by: str  # "radius", "place_recognition" or "radius+place_recognition"
+    found_by: str  # its candidate sources joined by "+": "radius", "place_recognition" (MapClosures), "ring_key"
     time_s: float  # registration and verification time
     factor: LoopFactor | None = None  # its factor in a LoopClosureModule's graph (None for a LoopCloser's loops)
 
@@ -64,6 +64,7 @@ class LoopCloser:
         self._travelled: dict[int, float] = {}  # path length [m] at each keyframe
         self._last_key: int | None = None
         self._place_recognition = PlaceRecognition(self.config.loops) if self.config.loops.use_map_closures else None
+        self._ring_keys = RingKeyRecognition(self.config.loops) if self.config.loops.ring_key_candidates else None
 
     def add_keyframe(
         self, key: int, T_world_keyframe: np.ndarray, points: np.ndarray, distance: float | None = None
@@ -121,16 +122,27 @@ class LoopCloser:
             for other in self._place_recognition.candidates(key, points, self._travelled):
                 if other in self._submaps:
                     found.setdefault(other, []).append("place_recognition")
+        if self._ring_keys is not None:
+            for other in self._ring_keys.candidates(key, points, self._travelled):
+                found.setdefault(other, []).append("ring_key")
         closed = []
         for other, sources in found.items():
             if len(closed) >= self.config.loops.max_loops_per_keyframe:
                 break
             self.attempts += 1
             pair = register_submaps(self._description(other), self._description(key), self.config.registration)
-            if pair.accepted:
+            if pair.accepted and self._within_drift(other, key, pair.T_target_source):
                 closed.append(LoopClosure(key, other, pair.T_target_source, pair.covariance, pair.inliers,
                                           pair.overlap, "+".join(sources), pair.time_s))  # fmt: skip
         return closed
+
+    def _within_drift(self, target: int, source: int, T_target_source: np.ndarray) -> bool:
+        """Whether the loop places `source` within `radius` + `max_drift` x the path between the two keyframes of
+        where the current estimates place it, in the target's frame [m]."""
+        estimate = np.linalg.solve(self._estimates[target], self._estimates[source])
+        path = abs(self._travelled[source] - self._travelled[target])
+        bound = self.config.loops.radius + self.config.loops.max_drift * path
+        return bool(np.linalg.norm(T_target_source[:3, 3] - estimate[:3, 3]) <= bound)
 
     def _description(self, key: int) -> SubmapDescription:
         description = self._descriptions.get(key)

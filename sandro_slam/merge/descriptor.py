@@ -4,29 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from sandro_slam.candidates import ring_key
 from sandro_slam.config import SlamConfig
 from sandro_slam.merge.loops import Descriptions
 from sandro_slam.session import Session
-
-
-def ring_key(
-    points: np.ndarray,
-    radius: float,
-    rings: int = 10,
-    sectors: int = 60,
-    heights: tuple[float, ...] = (-1.0, 1.0, 4.0, 10.0),
-) -> np.ndarray:
-    """A yaw-invariant place descriptor of a submap (points in the keyframe frame, z up [m]): per height band
-    (edges `heights` above the keyframe origin) and ring (up to `radius`), the share of azimuth sectors
-    holding a point."""
-    r = np.linalg.norm(points[:, :2], axis=1)
-    inside = r < radius
-    ring = (r[inside] / radius * rings).astype(int)
-    sector = ((np.arctan2(points[inside, 1], points[inside, 0]) + np.pi) / (2 * np.pi) * sectors).astype(int)
-    band = np.digitize(points[inside, 2], heights)
-    occupied = np.zeros((len(heights) + 1, rings, sectors))
-    occupied[band, ring, sector % sectors] = 1.0
-    return occupied.mean(axis=2).ravel()
 
 
 def place_candidates(

@@ -1,4 +1,5 @@
-"""KeyframeBuilder: where keyframes start and what their submaps hold; place recognition's spacing and pickling."""
+"""KeyframeBuilder: where keyframes start and what their submaps hold; place recognition: MapClosures' spacing and
+pickling, ring keys."""
 
 import pickle
 
@@ -9,7 +10,7 @@ from scipy.spatial import cKDTree
 
 from pipelines.simulation import simulate_sequence
 from sandro_core.geometry import transform_points
-from sandro_slam.candidates import PlaceRecognition
+from sandro_slam.candidates import PlaceRecognition, RingKeyRecognition
 from sandro_slam.config import KeyframeConfig, SlamConfig
 from sandro_slam.keyframes import ANCHOR_SCANS, KeyframeBuilder
 
@@ -137,16 +138,21 @@ def test_place_recognition_takes_any_64_bit_key():
     assert recognition._closures.seen == [0, 1, 2]
 
 
-def test_place_recognition_unpickled_finds_what_the_original_finds():
-    # MapClosures does not pickle: the unpickled one rebuilds its database from the submaps it saw.
+def _drive_submap() -> np.ndarray:
+    """A simulated street seen over 10 frames, in the first frame's frame."""
     sequence = simulate_sequence(seed=1, frames=10)
     poses = sequence.poses_at(np.array([frame.timestamp for frame in sequence.frames()]))
-    submap = np.concatenate(
+    return np.concatenate(
         [
             transform_points(np.linalg.inv(poses[0]) @ pose, frame.points)
             for pose, frame in zip(poses, sequence.frames())
         ]
     )
+
+
+def test_place_recognition_unpickled_finds_what_the_original_finds():
+    # MapClosures does not pickle: the unpickled one rebuilds its database from the submaps it saw.
+    submap = _drive_submap()
     other = np.random.default_rng(0).uniform([-30, -30, -2], [30, 30, 0], (20000, 3))  # another place: rough ground
     travelled = {key: 10.0 * key for key in range(41)}  # MapClosures matches only maps at least 4 keyframes apart
     original = PlaceRecognition(REFERENCE.loops.model_copy(update={"map_closures_spacing": 0.0}))
@@ -155,6 +161,20 @@ def test_place_recognition_unpickled_finds_what_the_original_finds():
     copy = pickle.loads(pickle.dumps(original))
     assert original.candidates(40, submap, travelled) == [0]
     assert copy.candidates(40, submap, travelled) == [0]
+
+
+def test_ring_keys_find_a_place_seen_again_turned_and_skip_recent_keyframes():
+    submap = _drive_submap()
+    rng = np.random.default_rng(0)
+    elsewhere = [rng.uniform([-30, -30, -2], [30, 30, 0], (20000, 3)), rng.uniform(-20, 20, (20000, 3))]
+    turned = transform_points(np.linalg.inv(_pose(0.0, yaw_deg=100.0)), submap)  # the place seen heading elsewhere
+    recognition = RingKeyRecognition(REFERENCE.loops)  # one candidate, at least 50 m of travel back
+    travelled = {0: 0.0, 1: 20.0, 2: 40.0, 3: 70.0, 4: 100.0}
+    assert recognition.candidates(0, submap, travelled) == []
+    assert recognition.candidates(1, elsewhere[0], travelled) == []  # nothing 50 m back yet
+    assert recognition.candidates(2, elsewhere[1], travelled) == []
+    assert recognition.candidates(3, turned, travelled) == [0]
+    assert recognition.candidates(4, turned, travelled) == [0]  # keyframe 3's ring key is the same, but 30 m back
 
 
 def test_a_submap_does_not_change_when_the_caller_reuses_its_arrays():

@@ -16,6 +16,7 @@ def _run_module(drive, mode: str) -> tuple[LoopClosureModule, np.ndarray]:
     config = SlamConfig()
     config.graph.mode = mode
     config.loops.use_map_closures = False
+    config.loops.ring_key_candidates = 0  # the radius search alone
     module = LoopClosureModule(config)
     for key, (T, points) in enumerate(zip(odometry, scans)):
         module.add_keyframe(key, T, points)
