@@ -23,7 +23,7 @@ class SubmapDescription:
 
     keypoints: np.ndarray  # (K, 3) FPFH keypoints
     descriptors: np.ndarray  # (K, 33)
-    cloud: o3d.geometry.PointCloud  # the keypoints with their normals
+    cloud: o3d.geometry.PointCloud  # the keypoints with their normals (the merge's free-space test)
     icp_points: o3d.geometry.PointCloud  # the submap at icp_voxel with normals: both sides of ICP, the overlap check
     tree: cKDTree  # of the descriptors, built once for every pair the keyframe takes part in
 
@@ -75,7 +75,7 @@ def register_submaps(
     """Estimate T_target_source between two submaps and verify it: SANDRO on FPFH matches, then
     point-to-plane ICP of the source's `icp_points` onto the target's, whose fitness is the overlap.
 
-    ICP works at `icp_voxel` on both sides: onto the coarser FPFH keypoints, the loops lay further from the
+    ICP works at `icp_voxel` on both sides: onto the coarser FPFH keypoints, the loops lie further from the
     truth (docs/benchmarks.md).
     """
     start = time.perf_counter()
