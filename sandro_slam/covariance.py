@@ -104,6 +104,13 @@ class FactorCovariances:
         columns = np.concatenate([self._columns(key) for key in keys])
         return self._gathered(columns, columns, f"the joint covariance of {list(keys)}")
 
+    def projected(self, factor: gtsam.NonlinearFactor, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
+        """(b, M) of `factor` linearised at `values`: its whitened error vector b and M = A Sigma A^T, the
+        covariance that its variables' joint covariance Sigma puts on its whitened measurement (A its whitened
+        Jacobian)."""
+        A, b = factor.linearize(values).jacobian()
+        return b, A @ self.joint(list(factor.keys())) @ A.T
+
     def _gathered(self, rows: np.ndarray, cols: np.ndarray, what: str) -> np.ndarray:
         """The covariance entries at variable columns `rows` x `cols`; KeyError naming `what` off the pattern."""
         rows, cols = self._position[rows], self._position[cols]

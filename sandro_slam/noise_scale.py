@@ -60,14 +60,12 @@ def _variance_factor(
     graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, covariances: FactorCovariances, indices: range
 ) -> float:
     """Squared whitened residuals of the factors at `indices` over their redundancy: sum of dim - tr(A S A^T), A the
-    whitened Jacobian of a factor and S the joint covariance of its variables (`covariances`, of `graph` at
-    `values`)."""
+    whitened Jacobian of a factor and S the joint covariance of its variables (`covariances.projected`, of `graph`
+    at `values`)."""
     squared, redundancy = 0.0, 0.0
     for i in indices:
         factor = graph.at(i)
-        A, _ = factor.linearize(values).jacobian()
-        S = covariances.joint(list(factor.keys()))
-        redundancy += factor.dim() - float(np.trace(A @ S @ A.T))
+        redundancy += factor.dim() - float(np.trace(covariances.projected(factor, values)[1]))
         squared += 2.0 * factor.error(values)
     return squared / max(redundancy, 1e-12)
 

@@ -165,10 +165,8 @@ def _pruned(
             break
         drops = np.zeros(len(loops))
         for n in np.flatnonzero(mine):
-            factor = graph.at(int(loops[n]))
-            A, b = factor.linearize(values).jacobian()
-            S = covariances.joint(list(factor.keys()))
-            drops[n] = float(b @ np.linalg.solve(np.eye(len(b)) - A @ S @ A.T, b))
+            b, M = covariances.projected(graph.at(int(loops[n])), values)
+            drops[n] = float(b @ np.linalg.solve(np.eye(len(b)) - M, b))
         limits = chi2.isf((1.0 - probability) / mine.sum(), dims)
         excess = np.where(drops > _tail_limit(drops[mine], REMOVAL_SIGMAS), drops / limits - 1.0, 0.0)
         if excess.max() <= 0.0:
