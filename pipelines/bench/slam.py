@@ -189,35 +189,59 @@ def loops_against_truth(
 ) -> dict[str, float]:
     """The verified loops against the true relative poses of their keyframes (`truth`: (F, 4, 4) at the
     result's frames): median errors, the wrong ones (beyond `wrong_m` [m] or `wrong_deg` [deg]) and how many of
-    them, and of the real ones, the back end rejected."""
+    them, and of the real ones, the back end rejected; and how many of the wrong ones kept are wrong against
+    their submaps' own frames too (`submap_frames`): the others are right about the submaps, and what is off is
+    the anchor scan's odometry pose within its keyframe."""
     if not result.loops:
         return {"loops_wrong": 0}
     errors = loop_errors(result, truth)
     wrong = (errors[:, 1] > wrong_m) | (errors[:, 0] > wrong_deg)
     rejected = np.array([loop.weight < 0.5 for loop in result.loops])
     median_deg, median_m = np.median(errors[~wrong], axis=0) if (~wrong).any() else (np.nan, np.nan)
-    return {
+    metrics = {
         "loop_error_median_deg": float(median_deg),
         "loop_error_median_m": float(median_m),
         "loops_wrong": int(wrong.sum()),
         "loops_wrong_rejected": int((wrong & rejected).sum()),
         "loops_real_rejected": int((~wrong & rejected).sum()),
     }
+    submap_errors = loop_errors(result, truth, submap_frames(result, truth))
+    submap_wrong = (submap_errors[:, 1] > wrong_m) | (submap_errors[:, 0] > wrong_deg)
+    metrics["loops_wrong_kept_submap_frames"] = int((wrong & submap_wrong & ~rejected).sum())
+    return metrics
 
 
-def loop_errors(result: SlamResult, truth: np.ndarray) -> np.ndarray:
+def loop_errors(result: SlamResult, truth: np.ndarray, corrections: dict[int, np.ndarray] | None = None) -> np.ndarray:
     """(L, 2) [deg, m]: each verified loop's error against the true relative pose of its keyframes (`truth`:
-    (F, 4, 4) at the result's frames)."""
+    (F, 4, 4) at the result's frames), or, with `corrections` (`submap_frames`), of their submaps' frames."""
     anchor_frame = {keyframe.key: keyframe.anchor_frame for keyframe in result.keyframes}
-    return np.array(
-        [
-            pose_errors(
-                loop.T_target_source,
-                np.linalg.inv(truth[anchor_frame[loop.target_key]]) @ truth[anchor_frame[loop.source_key]],
-            )
-            for loop in result.loops
-        ]
-    ).reshape(-1, 2)
+    errors = []
+    for loop in result.loops:
+        T_true = np.linalg.inv(truth[anchor_frame[loop.target_key]]) @ truth[anchor_frame[loop.source_key]]
+        if corrections is not None:
+            T_true = np.linalg.inv(corrections[loop.target_key]) @ T_true @ corrections[loop.source_key]
+        errors.append(pose_errors(loop.T_target_source, T_true))
+    return np.array(errors).reshape(-1, 2)
+
+
+def submap_frames(result: SlamResult, truth: np.ndarray) -> dict[int, np.ndarray]:
+    """Per keyframe, the rigid transform E (4x4) from the frame its submap is built in (the odometry's, relative
+    to the anchor scan) to the true anchor frame that best fits its scans: E @ T_keyframe_frame ~ the scans' true
+    poses relative to the anchor's (rotation: the chordal mean; translation: the mean offset). Identity where the
+    odometry within the keyframe is right; a keyframe whose anchor scan alone is misregistered, or whose scans bend,
+    has its submap turned by E against its anchor's truth, and a loop that aligns the submaps right is that far
+    off the anchors' truth."""
+    corrections = {}
+    for keyframe in result.keyframes:
+        mine = np.flatnonzero(result.keyframe_of_frame == keyframe.key)
+        true_relative = np.linalg.inv(truth[keyframe.anchor_frame]) @ truth[mine]
+        odometry_relative = result.T_keyframe_frame[mine]
+        u, _, vt = np.linalg.svd(np.einsum("nij,nkj->ik", true_relative[:, :3, :3], odometry_relative[:, :3, :3]))
+        E = np.eye(4)
+        E[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        E[:3, 3] = np.mean(true_relative[:, :3, 3] - odometry_relative[:, :3, 3] @ E[:3, :3].T, axis=0)
+        corrections[keyframe.key] = E
+    return corrections
 
 
 def false_loop_experiment(

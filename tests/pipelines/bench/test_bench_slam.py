@@ -5,9 +5,10 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from pipelines.bench.bags import bag_experiment
-from pipelines.bench.slam import keyframe_floor, loops_against_truth
+from pipelines.bench.slam import keyframe_floor, loop_errors, loops_against_truth, submap_frames
 from pipelines.cli.bench import main
 from sandro_slam import SlamConfig
 
@@ -73,8 +74,33 @@ def test_loops_against_truth_tells_wrong_loops_from_real_ones():
         loop(0, 5, 12.0, 0.0),
         loop(1, 5, -8.0, 1.0),
     ]  # wrong (aliased streets), one kept
-    metrics = loops_against_truth(SimpleNamespace(keyframes=keyframes, loops=loops), truth)
+    result = SimpleNamespace(
+        keyframes=keyframes, loops=loops, keyframe_of_frame=np.arange(6), T_keyframe_frame=np.tile(np.eye(4), (6, 1, 1))
+    )
+    metrics = loops_against_truth(result, truth)
     assert metrics["loops_wrong"] == 2 and metrics["loops_wrong_rejected"] == 1
+    assert metrics["loops_wrong_kept_submap_frames"] == 1
     assert metrics["loops_real_rejected"] == 1
     assert metrics["loop_error_median_m"] == pytest.approx(0.04)
     assert metrics["loop_error_median_deg"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_a_loop_right_about_submaps_whose_anchor_is_off_is_told_apart():
+    truth = _poses(np.arange(0.0, 40.0, 1.0))  # 40 scans 1 m apart: keyframes 0 and 1 of 20 scans each
+    keyframes = [SimpleNamespace(key=k, anchor_frame=20 * k) for k in range(2)]
+    of_frame = np.repeat([0, 1], 20)
+    turned = np.eye(4)
+    turned[:3, :3] = Rotation.from_euler("z", 3.0, degrees=True).as_matrix()
+    odometry = truth.copy()
+    odometry[20] = truth[20] @ turned  # keyframe 1's anchor scan alone registered 3 deg off
+    T_keyframe_frame = np.stack([np.linalg.inv(odometry[20 * k]) @ odometry[i] for i, k in enumerate(of_frame)])
+    # Its submap is built in the anchor's frame: a registration of the submaps is off the anchors' truth by the turn.
+    measured = np.linalg.inv(truth[0]) @ truth[20] @ turned
+    loop = SimpleNamespace(target_key=0, source_key=1, T_target_source=measured, weight=1.0)
+    result = SimpleNamespace(
+        keyframes=keyframes, loops=[loop], keyframe_of_frame=of_frame, T_keyframe_frame=T_keyframe_frame
+    )
+    assert loop_errors(result, truth)[0, 0] == pytest.approx(3.0)
+    assert loop_errors(result, truth, submap_frames(result, truth))[0, 0] < 0.2  # 1 of 20 scans in the mean
+    metrics = loops_against_truth(result, truth)
+    assert metrics["loops_wrong"] == 1 and metrics["loops_wrong_kept_submap_frames"] == 0

@@ -53,6 +53,7 @@ def test_smoke_run_writes_its_outputs(tmp_path):
     rows = json.loads((out / "suite.json").read_text())
     assert [row["sequence"] for row in rows] == ["office_16_rooms_raw"] and rows[0]["frames"] == 40
     assert rows[0]["ate_sandro_slam"] < 0.5 and rows[0]["scale"] < 0.5
+    assert rows[0]["ate_perfect_registration_floor"] < 0.5
     for name in (
         "suite.csv",
         "suite.png",
