@@ -23,6 +23,17 @@ def scaled(reference: float, description: str, zero_allowed: bool = False) -> An
     )
 
 
+class OdometryGicpConfig(StrictModel):
+    """The odometry's second registration: each KISS-ICP pose refined with VGICP (small_gicp) against a map of
+    Gaussian voxels (`sandro_slam.odometry.GaussianMapRefiner`)."""
+
+    enabled: bool = Field(True, description="refine every KISS-ICP pose with VGICP")
+    resolution: float | None = scaled(2.0, "voxel [m] of the Gaussian map")
+    source_voxel: float | None = scaled(0.5, "voxel [m] the scan is downsampled to before its covariances")
+    max_distance: float | None = scaled(3.0, "correspondence distance [m]")
+    max_iterations: int = Field(20, ge=1, description="Gauss-Newton iterations per scan")
+
+
 class KeyframeConfig(StrictModel):
     """When a new keyframe starts, and what its submap holds."""
 
@@ -161,6 +172,7 @@ class SlamConfig(YamlConfig):
         default_factory=KISSConfig,
         description=f"KISS-ICP's config; its mapping.voxel_size None means {REFERENCE_ODOMETRY_VOXEL:g} m x scale",
     )
+    odometry_gicp: OdometryGicpConfig = Field(default_factory=OdometryGicpConfig)
     keyframes: KeyframeConfig = Field(default_factory=KeyframeConfig)
     loops: LoopDetectionConfig = Field(default_factory=LoopDetectionConfig)
     registration: LoopRegistrationConfig = Field(default_factory=LoopRegistrationConfig)

@@ -9,17 +9,58 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import small_gicp
+from kiss_icp.config.parser import KISSConfig
 from kiss_icp.kiss_icp import KissICP
 from kiss_icp.mapping import get_voxel_hash_map
 
 from sandro_core.geometry import interpolate_poses, rotation_angle, transform_points
-from sandro_slam.config import SlamConfig
+from sandro_slam.config import OdometryGicpConfig, SlamConfig
 from sandro_slam.keyframes import voxel_downsample
 from sandro_slam.scan import Scan
 
 OdometryPose = tuple[float, np.ndarray, np.ndarray]  # (stamp [s], T_world_sensor, points in the sensor frame)
 MAX_HELD_SCANS = 300  # a start that stands still longer (30 s at 10 Hz) is not held back any further
 REDESKEW_DEG = 0.5  # deskew and register a scan again when its rotation differs from the prediction by more
+
+
+class GaussianMapRefiner:
+    """Poses refined with VGICP (small_gicp) against a map of Gaussian voxels built from the scans registered so
+    far; voxels not matched for 100 scans are dropped.
+
+    KISS-ICP matches points to points. Where the sensor's pattern repeats rotated from sweep to sweep (a Livox
+    Mid-360's zigzag, an Avia's rosette) and the map holds little more than the last sweeps' lines, the nearest
+    points are those of the same lines one sweep before, and point-to-point ICP follows the pattern: a walker
+    with a Mid-360-like sensor turned 1.4 deg a sweep that it never turned. A voxel's Gaussian sums the points of
+    many lines, whatever their pattern, so VGICP aligns the scan with the surfaces instead."""
+
+    def __init__(self, config: OdometryGicpConfig):
+        self.config = config
+        self.map = small_gicp.GaussianVoxelMap(config.resolution)
+        self.map.set_lru(horizon=100, clear_cycle=10)
+
+    def prepare(self, points: np.ndarray) -> small_gicp.PointCloud:
+        """`points` (N, 3) [m], downsampled to `source_voxel`, with the covariances of their 10 neighbours."""
+        cloud, _ = small_gicp.preprocess_points(points, self.config.source_voxel, num_neighbors=10, num_threads=1)
+        return cloud
+
+    def align(self, cloud: small_gicp.PointCloud, guess: np.ndarray) -> np.ndarray:
+        """T_map_scan of a prepared scan, refined from `guess`; `guess` itself while the map is empty."""
+        if self.map.size() == 0 or cloud.size() == 0:
+            return guess
+        result = small_gicp.align(
+            self.map,
+            cloud,
+            guess,
+            max_correspondence_distance=self.config.max_distance,
+            num_threads=1,  # KISS-ICP and the loop-closure worker keep the other cores busy: more threads wait
+            max_iterations=self.config.max_iterations,
+        )
+        return result.T_target_source
+
+    def insert(self, cloud: small_gicp.PointCloud, pose: np.ndarray) -> None:
+        """Add a prepared scan at T_map_scan `pose`."""
+        self.map.insert(cloud, pose)
 
 
 class ScanOdometry(KissICP):
@@ -38,7 +79,14 @@ class ScanOdometry(KissICP):
     The kernel (a third of the correspondence distance) is never below one voxel: on a straight, steady drive
     KISS-ICP's adaptive threshold shrinks until a sharp corner's first scans, turned 5.7 deg beyond the
     prediction, find correspondences only on the ground, which does not see yaw (a 128-beam drive missed 30 deg
-    of a corner that way)."""
+    of a corner that way).
+
+    With `gicp` enabled, each pose is then refined with VGICP against a map of Gaussian voxels
+    (`GaussianMapRefiner`), and KISS-ICP's map and motion model take the refined pose."""
+
+    def __init__(self, config: KISSConfig, gicp: OdometryGicpConfig | None = None):
+        super().__init__(config)
+        self.refiner = GaussianMapRefiner(gicp) if gicp is not None and gicp.enabled else None
 
     def register_frame(self, frame: np.ndarray, timestamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         deskewed = self.preprocessor.preprocess(frame, timestamps, self.last_delta)
@@ -53,6 +101,10 @@ class ScanOdometry(KissICP):
             deskewed = self.preprocessor.preprocess(frame, timestamps, motion)
             source, self.map_points = self.voxelize(deskewed)
             pose = self.registration.align_points_to_map(source, self.local_map, pose, 3.0 * sigma, sigma)
+        if self.refiner is not None:
+            cloud = self.refiner.prepare(self.map_points)
+            pose = self.refiner.align(cloud, pose)
+            self.refiner.insert(cloud, pose)
         self.adaptive_threshold.update_model_deviation(np.linalg.inv(prediction) @ pose)
         self.local_map.update(self.map_points, pose)
         self.last_delta = np.linalg.inv(self.last_pose) @ pose
@@ -73,7 +125,7 @@ class KissIcpOdometry:
 
     def __init__(self, config: SlamConfig):
         self.config = config
-        self.kiss_icp = ScanOdometry(config.odometry)
+        self.kiss_icp = ScanOdometry(config.odometry, config.odometry_gicp)
         # The scan as the submaps take it: KISS-ICP's own voxelisation when that is fine enough.
         self._own_scan = config.keyframes.submap_voxel >= 0.5 * config.odometry.mapping.voxel_size
         self._held: list[OdometryPose] = []
