@@ -79,12 +79,10 @@ def test_ray_workers_give_the_serial_results(bags, tmp_path):
     assert main([*good, "--workers", "1", "--out", str(serial), *one_thread]) == 0
     assert main([*good, str(bags[1]), "--workers", "2", "--out", str(parallel), *one_thread]) == 1
     assert [row["status"] for row in _summary(parallel)] == ["done", "done", "failed"]
-    for name in ("drive0", "drive1"):  # the same up to the last printed digits (rounding in another process)
+    for name in ("drive0", "drive1"):  # equal to 1e-6: the odometry's last bits differ between a Ray worker and here
         np.testing.assert_allclose(_poses(parallel, name), _poses(serial, name), rtol=0.0, atol=1e-6)
-        (serial_loops, serial_numbers), (parallel_loops, parallel_numbers) = (
-            _loops(serial, name),
-            _loops(parallel, name),
-        )
+        serial_loops, serial_numbers = _loops(serial, name)
+        parallel_loops, parallel_numbers = _loops(parallel, name)
         assert parallel_loops == serial_loops
         np.testing.assert_allclose(parallel_numbers, serial_numbers, rtol=1e-6, atol=1e-6)
 
