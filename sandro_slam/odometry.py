@@ -39,28 +39,23 @@ class GaussianMapRefiner:
         self.map = small_gicp.GaussianVoxelMap(config.resolution)
         self.map.set_lru(horizon=100, clear_cycle=10)
 
-    def prepare(self, points: np.ndarray) -> small_gicp.PointCloud:
-        """`points` (N, 3) [m], downsampled to `source_voxel`, with the covariances of their 10 neighbours."""
+    def refine(self, points: np.ndarray, guess: np.ndarray) -> np.ndarray:
+        """T_map_scan of a scan (`points` (N, 3) [m] in its frame), refined from `guess` (`guess` itself while the
+        map is empty); the scan, downsampled to `source_voxel` with its 10 neighbours' covariances, then joins the
+        map at that pose."""
         cloud, _ = small_gicp.preprocess_points(points, self.config.source_voxel, num_neighbors=10, num_threads=1)
-        return cloud
-
-    def align(self, cloud: small_gicp.PointCloud, guess: np.ndarray) -> np.ndarray:
-        """T_map_scan of a prepared scan, refined from `guess`; `guess` itself while the map is empty."""
-        if self.map.size() == 0 or cloud.size() == 0:
-            return guess
-        result = small_gicp.align(
-            self.map,
-            cloud,
-            guess,
-            max_correspondence_distance=self.config.max_distance,
-            num_threads=1,  # KISS-ICP and the loop-closure worker keep the other cores busy: more threads wait
-            max_iterations=self.config.max_iterations,
-        )
-        return result.T_target_source
-
-    def insert(self, cloud: small_gicp.PointCloud, pose: np.ndarray) -> None:
-        """Add a prepared scan at T_map_scan `pose`."""
+        pose = guess
+        if self.map.size() and cloud.size():
+            pose = small_gicp.align(
+                self.map,
+                cloud,
+                guess,
+                max_correspondence_distance=self.config.max_distance,
+                num_threads=1,  # KISS-ICP and the loop-closure worker keep the other cores busy: more threads wait
+                max_iterations=self.config.max_iterations,
+            ).T_target_source
         self.map.insert(cloud, pose)
+        return pose
 
 
 class ScanOdometry(KissICP):
@@ -102,9 +97,7 @@ class ScanOdometry(KissICP):
             source, self.map_points = self.voxelize(deskewed)
             pose = self.registration.align_points_to_map(source, self.local_map, pose, 3.0 * sigma, sigma)
         if self.refiner is not None:
-            cloud = self.refiner.prepare(self.map_points)
-            pose = self.refiner.align(cloud, pose)
-            self.refiner.insert(cloud, pose)
+            pose = self.refiner.refine(self.map_points, pose)
         self.adaptive_threshold.update_model_deviation(np.linalg.inv(prediction) @ pose)
         self.local_map.update(self.map_points, pose)
         self.last_delta = np.linalg.inv(self.last_pose) @ pose
