@@ -28,7 +28,7 @@ class OdometryGicpConfig(StrictModel):
     Gaussian voxels (`sandro_slam.odometry.GaussianMapRefiner`)."""
 
     enabled: bool = Field(True, description="refine every KISS-ICP pose with VGICP")
-    resolution: float | None = scaled(2.0, "voxel [m] of the Gaussian map")
+    resolution: float | None = scaled(1.5, "voxel [m] of the Gaussian map")
     source_voxel: float | None = scaled(0.5, "voxel [m] the scan is downsampled to before its covariances")
     max_distance: float | None = scaled(3.0, "correspondence distance [m]")
     max_iterations: int = Field(20, ge=1, description="Gauss-Newton iterations per scan")
