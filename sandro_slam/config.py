@@ -28,6 +28,8 @@ class OdometryGicpConfig(StrictModel):
     Gaussian voxels (`sandro_slam.odometry.GaussianMapRefiner`)."""
 
     enabled: bool = Field(True, description="refine every KISS-ICP pose with VGICP")
+    # Finer voxels narrow VGICP's reach (a 128-beam drive lost its way at a corner); coarser ones blur thin
+    # structure such as a garage's pillars (docs/benchmarks.md, "The Gaussian map at 1.5 voxels").
     resolution: float | None = scaled(1.5, "voxel [m] of the Gaussian map")
     source_voxel: float | None = scaled(0.5, "voxel [m] the scan is downsampled to before its covariances")
     max_distance: float | None = scaled(3.0, "correspondence distance [m]")
