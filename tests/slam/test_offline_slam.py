@@ -205,7 +205,7 @@ def test_the_odometry_does_not_follow_a_scan_pattern_that_repeats_rotated():
         error = np.linalg.inv(truth[-1]) @ truth[0] @ odometry.last_pose  # the odometry starts at the identity
         errors[refined] = np.degrees(rotation_angle(error[:3, :3]))
     assert errors[False] > 1.0  # 2.2 deg over 6 m
-    assert errors[True] < 0.3  # 0.04 deg
+    assert errors[True] < 0.3  # 0.10 deg (0.04 with the Gaussian map at 2 voxels)
 
 
 def test_refine_keeps_the_keyframes_and_loops_and_moves_every_scan(sharp_corners):
