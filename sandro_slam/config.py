@@ -120,6 +120,12 @@ class GraphConfig(StrictModel):
         description="when to scale the odometry covariances to fit the loops (variance component estimation): for "
         "the poses of another front end, whose quality the model below cannot know (docs/back-end.md)",
     )
+    loop_submap_noise: bool = Field(
+        True,
+        description="once the loops are decided, weigh each kept loop with its registration covariance plus the "
+        "odometry covariance of each of its two keyframes: a loop aligns two submaps, each only as rigid as the "
+        "odometry within its keyframe (docs/back-end.md)",
+    )
     prior_sigma: float = Field(1e-3, gt=0.0, description="std of the first pose, rad and m")
     odometry_translation_sigma_per_m: float = Field(0.01, gt=0.0, description="[m] per m travelled")
     odometry_rotation_sigma_per_m: float = Field(0.001, gt=0.0, description="[rad] per m travelled")

@@ -9,9 +9,9 @@ import numpy as np
 from scipy.stats import chi2
 
 from sandro_slam.config import GraphConfig
-from sandro_slam.factors import between_factor
+from sandro_slam.factors import between_factor, gaussian_noise
 from sandro_slam.noise_scale import rescale_odometry
-from sandro_slam.robust_backend import robust_optimize
+from sandro_slam.robust_backend import refined, robust_optimize
 
 
 @dataclass
@@ -33,6 +33,10 @@ class PoseGraph:
     `robust_backend.robust_optimize`: truncated least squares seeded by the loops that agree with their
     neighbours, or gtsam's GNC) decides which loops are outliers. In incremental mode ISAM2 keeps the estimate
     and holds the loops the robust back end accepts.
+
+    With `loop_submap_noise`, the estimate is solved, once the loops are decided, with each kept loop's covariance
+    widened by the odometry covariance of each of its two keyframes (`estimation_factor`): a loop aligns two
+    submaps, and each is only as rigid as the odometry that built it.
     """
 
     def __init__(self, config: GraphConfig):
@@ -42,9 +46,12 @@ class PoseGraph:
         self.loops: list[LoopFactor] = []
         self.odometry_scale = 1.0  # on the odometry covariances in the last optimisation (noise_scale)
         self._known_inliers: list[int] = []
+        self._keyframe_odometry: dict[int, int] = {}  # key -> index of the odometry factor across its keyframe: the
+        # one that ends at it (the first keyframe: the one that starts at it)
         self._estimate = gtsam.Values()
         self._isam = gtsam.ISAM2() if config.mode == "incremental" else None
         self._isam_slots: dict[int, int] = {}  # graph factor index -> ISAM2 factor slot (accepted loops)
+        self._weights = np.ones(0)  # the robust back end's weight per factor in the last optimisation
 
     def add_pose(
         self,
@@ -67,6 +74,8 @@ class PoseGraph:
             previous = self.values.atPose3(odometry_from)
             T_prev_key = previous.between(pose).matrix()
             factor = between_factor(odometry_from, key, T_prev_key, odometry_covariance_)
+            self._keyframe_odometry[key] = self.graph.size()
+            self._keyframe_odometry.setdefault(odometry_from, self.graph.size())
             # Start from the current estimate of the previous keyframe so new poses follow the corrections.
             prev_estimate = self._estimate.atPose3(odometry_from) if self._estimate.exists(odometry_from) else previous
             initial = prev_estimate.compose(gtsam.Pose3(T_prev_key))
@@ -106,11 +115,13 @@ class PoseGraph:
         if self._isam is not None:
             self._optimize_incremental()
         else:
-            self._estimate = self._robust_optimize(self.values)
+            self._estimate = self._with_loop_submap_noise(self._robust_optimize(self.values))
         if estimate_odometry_noise:
             odometry = self._known_inliers[1:]  # the first is the prior
             kept = [loop.factor_index for loop in self.loops if loop.weight >= 0.5]
-            self._estimate, self.odometry_scale = rescale_odometry(self.graph, self._estimate, odometry, kept)
+            self._estimate, self.odometry_scale = rescale_odometry(
+                self._estimation_graph(), self._estimate, odometry, kept
+            )
         return {key: self._estimate.atPose3(key).matrix() for key in self._estimate.keys()}
 
     def update_estimate(self) -> None:
@@ -122,7 +133,7 @@ class PoseGraph:
             self._optimize_incremental()
         elif self.values.size() > 0:
             given = self.config.model_copy(update={"noise_scale": "given"})
-            self._estimate = self._robust_optimize(self._estimate, given)
+            self._estimate = self._with_loop_submap_noise(self._robust_optimize(self._estimate, given))
 
     def estimate(self, key: int) -> np.ndarray:
         """The latest estimate of T_world_keyframe for `key`."""
@@ -133,6 +144,17 @@ class PoseGraph:
         end's inlier threshold (the chi-square of 6 degrees of freedom at `inlier_probability`)."""
         error = self.graph.at(loop.factor_index).error(self._estimate)  # half the squared whitened error
         return error <= 0.5 * chi2.ppf(self.config.inlier_probability, 6)
+
+    def estimation_factor(self, loop: LoopFactor) -> gtsam.BetweenFactorPose3:
+        """The loop's factor as the estimate weighs it once loops are decided: with `loop_submap_noise`, its
+        covariance plus the covariances of the odometry factors across its two keyframes; else its own."""
+        if not self.config.loop_submap_noise:
+            return self.graph.at(loop.factor_index)
+        covariance = loop.covariance.copy()
+        for key in (loop.target_key, loop.source_key):
+            if key in self._keyframe_odometry:
+                covariance += gaussian_noise(self.graph.at(self._keyframe_odometry[key])).covariance()
+        return between_factor(loop.target_key, loop.source_key, loop.T_target_source, covariance)
 
     def rejected_loops(self) -> list[LoopFactor]:
         """Loops the robust back end weighted below 0.5 in the last optimisation."""
@@ -153,15 +175,36 @@ class PoseGraph:
             return
         factors = gtsam.NonlinearFactorGraph()
         accepted = sorted(self._isam_slots)
-        for index in self._known_inliers + accepted:
+        for index in self._known_inliers:
             factors.add(self.graph.at(index))
+        by_index = {loop.factor_index: loop for loop in self.loops}
+        for index in accepted:
+            factors.add(self.estimation_factor(by_index[index]))
         slots = list(self._isam.update(factors, self._estimate).getNewFactorsIndices())
         self._isam_slots = dict(zip(accepted, slots[len(self._known_inliers) :]))
 
+    def _with_loop_submap_noise(self, values: gtsam.Values) -> gtsam.Values:
+        """Batch mode with `loop_submap_noise`: `values` solved again on the factors the robust back end kept,
+        each loop as its `estimation_factor`."""
+        if not self.config.loop_submap_noise or not any(loop.weight >= 0.5 for loop in self.loops):
+            return values
+        return refined(self._estimation_graph(), values, self._weights)
+
+    def _estimation_graph(self) -> gtsam.NonlinearFactorGraph:
+        """The graph with each loop's factor at its index replaced by its `estimation_factor`."""
+        if not self.config.loop_submap_noise:
+            return self.graph
+        graph = self.graph.clone()
+        for loop in self.loops:
+            graph.replace(loop.factor_index, self.estimation_factor(loop))
+        return graph
+
     def _robust_optimize(self, initial: gtsam.Values, config: GraphConfig | None = None) -> gtsam.Values:
         if not self.loops:
+            self._weights = np.ones(self.graph.size())
             return gtsam.LevenbergMarquardtOptimizer(self.graph, initial).optimize()
         result, weights = robust_optimize(self.graph, initial, self._known_inliers, config or self.config)
+        self._weights = weights
         for loop in self.loops:
             loop.weight = float(weights[loop.factor_index])
         return result
@@ -179,7 +222,7 @@ class PoseGraph:
         if added or removed:
             new_factors = gtsam.NonlinearFactorGraph()
             for loop in added:
-                new_factors.add(self.graph.at(loop.factor_index))
+                new_factors.add(self.estimation_factor(loop))
             result = self._isam.update(new_factors, gtsam.Values(), removed)
             for loop, slot in zip(added, result.getNewFactorsIndices()):
                 self._isam_slots[loop.factor_index] = slot

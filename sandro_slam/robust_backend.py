@@ -82,7 +82,7 @@ def robust_optimize(
         return gtsam.LevenbergMarquardtOptimizer(graph, initial).optimize(), np.ones(graph.size())
     loops = _loop_indices(graph.size(), known_inliers)
     if not len(loops):
-        return _refined(graph, initial, np.ones(graph.size())), np.ones(graph.size())
+        return refined(graph, initial, np.ones(graph.size())), np.ones(graph.size())
     seed = loops[supported_loops(graph, known_inliers)] if config.robust == "gnc_tls" else loops[:0]
     dims = np.array([graph.at(int(i)).dim() for i in loops])
     thresholds = chi2.ppf(config.inlier_probability, dims)
@@ -96,7 +96,7 @@ def robust_optimize(
         values, weights = _lower_cost(graph, (values, weights), judged, known_inliers, thresholds)
     if seeded is not None:
         values, weights = _pruned(graph, values, weights, known_inliers, thresholds, config.inlier_probability)
-    values = _refined(graph, values, weights)
+    values = refined(graph, values, weights)
     if config.noise_scale == "estimated" and len(set(dims)) == 1:
         scale = variance_factor(graph, values, weights, known_inliers)
         if scale < 1.0:  # 1: too few loops to tell; above 1 the stated covariances are not too loose
@@ -105,7 +105,7 @@ def robust_optimize(
             else:
                 scaled = _gnc(graph, initial, known_inliers, config, 0.5 * thresholds[0] * scale)
             scaled_weights = readmitted(graph, *scaled, known_inliers)
-            scaled = _refined(graph, scaled[0], scaled_weights), scaled_weights
+            scaled = refined(graph, scaled[0], scaled_weights), scaled_weights
             if _scaled_run_wins(graph, values, weights, *scaled, known_inliers):
                 values, weights = scaled
     return values, weights
@@ -172,7 +172,7 @@ def _pruned(
         if excess.max() <= 0.0:
             break
         candidates[loops[(excess > 0.0) & (excess >= REMOVAL_SHARE * excess.max())]] = 0.0
-        values = _refined(graph, values, candidates, relative_tol=SEED_RELATIVE_TOL)
+        values = refined(graph, values, candidates, relative_tol=SEED_RELATIVE_TOL)
         values, weights = _truncated(graph, values, candidates, known_inliers, thresholds)
     return values, weights
 
@@ -224,7 +224,7 @@ def _seeded(
         weights = np.ones(graph.size())
         weights[loops] = 0.0
         weights[seed] = 1.0
-        values = _refined(graph, initial, weights)  # to convergence: from poor initial values poses still move
+        values = refined(graph, initial, weights)  # to convergence: from poor initial values poses still move
         # far while the cost barely changes
         errors = np.array([2.0 * graph.at(int(i)).error(values) for i in seed])
         misfit = (errors > np.array([threshold_of[int(i)] for i in seed])) & (errors > _tail_limit(errors))
@@ -288,7 +288,7 @@ def _admitted(
             admitted[index] = 1.0
     if np.array_equal(admitted, weights):
         return values, weights
-    return _refined(graph, values, admitted, relative_tol=SEED_RELATIVE_TOL), admitted
+    return refined(graph, values, admitted, relative_tol=SEED_RELATIVE_TOL), admitted
 
 
 def _chi2_ratio(factor: gtsam.NonlinearFactor, values: gtsam.Values) -> float:
@@ -330,7 +330,7 @@ def _truncated(
         if np.array_equal(judged, weights):
             break
         weights = judged
-        values = _refined(graph, values, weights, relative_tol=SEED_RELATIVE_TOL)
+        values = refined(graph, values, weights, relative_tol=SEED_RELATIVE_TOL)
     return values, weights
 
 
@@ -352,7 +352,7 @@ def check_loops(
     return weights[loop_indices] >= 0.5, optimized
 
 
-def _refined(
+def refined(
     graph: gtsam.NonlinearFactorGraph,
     values: gtsam.Values,
     weights: np.ndarray,

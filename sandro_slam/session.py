@@ -79,6 +79,16 @@ class Session:
             result.config.scale,
         )
 
+    def keyframe_odometry_covariances(self) -> dict[int, np.ndarray]:
+        """Per keyframe key, the 6x6 covariance of the odometry edge across its keyframe: the one that ends at it (the
+        first keyframe: the one that starts at it)."""
+        covariances: dict[int, np.ndarray] = {}
+        for edge in self.edges:
+            if edge.kind == "odometry":
+                covariances[edge.source] = edge.covariance
+                covariances.setdefault(edge.target, edge.covariance)
+        return covariances
+
     def frame_poses(self, keyframe_poses: dict[int, np.ndarray] | None = None) -> np.ndarray:
         """(F, 4, 4) T_world_frame of every frame, moved with its keyframe (default: the session's poses)."""
         poses = self.keyframe_poses if keyframe_poses is None else keyframe_poses

@@ -30,7 +30,7 @@ class MergeResult:
     keyframe_poses: dict[str, dict[int, np.ndarray]]
     frame_poses: dict[str, np.ndarray]
     loops: list[InterSessionLoop]  # all verified inter-session loops, with their weights
-    graph: gtsam.NonlinearFactorGraph  # the merged graph (keys: session_key)
+    graph: gtsam.NonlinearFactorGraph  # the merged graph (keys: session_key), its loops as the estimate weighs them
     values: gtsam.Values  # its optimised values
     timings: dict[str, float] = field(default_factory=dict)  # seconds
 
@@ -46,12 +46,29 @@ def session_key(session_index: int, key: int) -> int:
 
 
 def build_graph(
-    sessions: list[Session], T_merged: dict[int, np.ndarray], loops: list[InterSessionLoop], prior_sigma: float
+    sessions: list[Session],
+    T_merged: dict[int, np.ndarray],
+    loops: list[InterSessionLoop],
+    prior_sigma: float,
+    loop_submap_noise: bool = False,
 ):
     """The merged graph over the joined sessions: (graph, initial values, known inlier factor indices,
-    [(loop, factor index)] of the inter-session loops)."""
+    [(loop, factor index)] of the inter-session loops). With `loop_submap_noise` the same factors at the same
+    indices, but each loop, the sessions' and the inter-session ones, with its covariance plus the odometry
+    covariance across each of its two keyframes (as `PoseGraph.estimation_factor`)."""
     graph, values, known = gtsam.NonlinearFactorGraph(), gtsam.Values(), []
     prior = gtsam.noiseModel.Isotropic.Sigma(6, prior_sigma)
+    odometry = {index: sessions[index].keyframe_odometry_covariances() for index in T_merged}
+
+    def covariance(loop_covariance: np.ndarray, target: tuple[int, int], source: tuple[int, int]) -> np.ndarray:
+        if not loop_submap_noise:
+            return loop_covariance
+        widened = loop_covariance.copy()
+        for session, key in (target, source):
+            if key in odometry[session]:
+                widened += odometry[session][key]
+        return widened
+
     for index in sorted(T_merged):
         session = sessions[index]
         for key in session.keys:
@@ -63,7 +80,13 @@ def build_graph(
         for edge in session.edges:
             if edge.accepted:
                 known.append(graph.size())
-                graph.add(edge.factor(session_key(index, edge.target), session_key(index, edge.source)))
+                edge_covariance = (
+                    edge.covariance
+                    if edge.kind == "odometry"
+                    else covariance(edge.covariance, (index, edge.target), (index, edge.source))
+                )
+                target, source = session_key(index, edge.target), session_key(index, edge.source)
+                graph.add(between_factor(target, source, edge.T_target_source, edge_covariance))
     loop_factors = []
     for loop in loops:
         if loop.voted and loop.target_session in T_merged and loop.source_session in T_merged:
@@ -73,7 +96,11 @@ def build_graph(
                     session_key(loop.target_session, loop.target_key),
                     session_key(loop.source_session, loop.source_key),
                     loop.T_target_source,
-                    loop.covariance,
+                    covariance(
+                        loop.covariance,
+                        (loop.target_session, loop.target_key),
+                        (loop.source_session, loop.source_key),
+                    ),
                 )
             )
     return graph, values, known, loop_factors

@@ -15,7 +15,7 @@ from sandro_slam.merge.free_space import FreeSpace, pair_conflict
 from sandro_slam.merge.graph import MergeResult, accepted_pairs, build_graph, merge_result
 from sandro_slam.merge.loops import Descriptions, InterSessionLoop, register_pairs
 from sandro_slam.merge.voting import fits, spanning_transforms, vote
-from sandro_slam.robust_backend import robust_optimize
+from sandro_slam.robust_backend import refined, robust_optimize
 from sandro_slam.session import Session
 from sandro_slam.timing import Stopwatch
 
@@ -108,8 +108,9 @@ def _optimize(
 ):
     """Optimise the merged graph with the robust back end (setting each loop's weight); a session whose
     inter-session loops the back end rejects until it is no longer joined to the first is refused (taken out of
-    `T_merged`, its reason added to `refused`) and the graph optimised again. Returns `build_graph`'s graph,
-    known inliers and loop factors, with the optimised values."""
+    `T_merged`, its reason added to `refused`) and the graph optimised again. Returns `build_graph`'s graph (with
+    `graph.loop_submap_noise`: its loops widened, as the estimate weighs them once they are decided), known inliers
+    and loop factors, with the optimised values."""
     min_loops = config.merge.min_loops
     while True:
         graph, values, known, loop_factors = build_graph(sessions, T_merged, loops, config.graph.prior_sigma)
@@ -118,6 +119,9 @@ def _optimize(
             if loop_factors
             else (gtsam.LevenbergMarquardtOptimizer(graph, values).optimize(), np.ones(graph.size()))
         )
+        if config.graph.loop_submap_noise:  # loops decided: the estimate weighs them as `PoseGraph` does
+            graph = build_graph(sessions, T_merged, loops, config.graph.prior_sigma, loop_submap_noise=True)[0]
+            estimate = refined(graph, estimate, weights)
         for loop in loops:
             loop.weight = float("nan")
         for loop, index in loop_factors:

@@ -6,7 +6,7 @@ import pytest
 
 from sandro_slam.config import GraphConfig
 from sandro_slam.loop_consistency import supported_loops
-from sandro_slam.robust_backend import _refined, robust_optimize
+from sandro_slam.robust_backend import refined, robust_optimize
 
 LAPS, PER_LAP = 3, 60  # poses: three laps of a circle of 60 poses, 2 m apart
 ODOMETRY_SIGMAS = np.array([0.002] * 3 + [0.02] * 3)  # [rad], [m]
@@ -91,6 +91,6 @@ def test_the_seeded_back_end_keeps_every_real_loop_and_rejects_every_wrong_one(n
     assert np.all(weights[wrong] < 0.5)
     clean = np.ones(graph.size())
     clean[wrong] = 0.0
-    optimum = _refined(graph, initial, clean)
+    optimum = refined(graph, initial, clean)
     offsets = [values.atPose3(i).translation() - optimum.atPose3(i).translation() for i in range(len(truth))]
     assert np.linalg.norm(offsets, axis=1).max() < 1e-3

@@ -15,10 +15,10 @@ from sandro_slam.robust_backend import (
     _gnc,
     _loop_indices,
     _pruned,
-    _refined,
     _scaled_run_wins,
     _truncated,
     readmitted,
+    refined,
     robust_optimize,
     variance_factor,
 )
@@ -158,6 +158,30 @@ def test_update_estimate_lands_where_optimize_does():
     assert max(error) < 0.01 * max(start)
 
 
+@pytest.mark.parametrize("mode", ["batch", "incremental"])
+def test_kept_loops_are_weighed_with_the_odometry_across_their_keyframes(mode):
+    """Loops between submaps that the odometry bent within their keyframes measure the submaps' rotation 0.3 deg
+    off their anchors' with a 0.03 deg registration std; the odometry is exact. Weighed with the odometry across
+    their two keyframes as well, they bend it less; the same loops are kept."""
+    n = 40
+    truth = _circle(n, 30.0)
+    rng = np.random.default_rng(3)
+    errors = {}
+    for loop_submap_noise in (False, True):
+        graph = PoseGraph(GraphConfig(mode=mode, loop_submap_noise=loop_submap_noise))
+        graph.add_pose(0, truth[0])
+        for i in range(1, n):
+            graph.add_pose(i, truth[i], i - 1, odometry_covariance(4.7, graph.config))
+        covariance = np.diag([np.radians(0.03) ** 2] * 3 + [0.01**2] * 3)
+        for i in range(0, n - 20, 2):
+            bend = gtsam.Pose3(gtsam.Rot3.Yaw(np.radians(0.3) * rng.choice([-1.0, 1.0])), np.zeros(3)).matrix()
+            graph.add_loop(i, i + 20, np.linalg.inv(truth[i]) @ truth[i + 20] @ bend, covariance)
+        poses = graph.optimize()
+        assert not graph.rejected_loops()
+        errors[loop_submap_noise] = np.sqrt(np.mean([np.sum((poses[i] - truth[i])[:3, 3] ** 2) for i in range(n)]))
+    assert errors[True] < 0.5 * errors[False]
+
+
 def test_bad_loop_input():
     graph = PoseGraph(GraphConfig())
     graph.add_pose(0, np.eye(4))
@@ -233,7 +257,7 @@ def test_readmitted_gives_back_loops_within_the_kept_loops_spread_only():
     graph, initial, known, wrong, _ = _loose_graph(tail=5.0)
     weights = np.ones(graph.size())
     weights[wrong] = 0.0
-    values = _refined(graph, initial, weights)
+    values = refined(graph, initial, weights)
     tail = [len(known) + n for n in range(0, 60, 10)]
     weights[tail] = 0.0
     out = readmitted(graph, values, weights, known)
@@ -245,7 +269,7 @@ def test_variance_factor_of_a_clean_graph_is_its_noise_ratio_squared():
     graph, initial, known, wrong, _ = _loose_graph()
     weights = np.ones(graph.size())
     weights[wrong] = 0.0
-    values = _refined(graph, initial, weights)
+    values = refined(graph, initial, weights)
     assert 0.3e-4 < variance_factor(graph, values, weights, known) < 3e-4  # (1/100)^2
     assert variance_factor(graph, values, weights, list(range(graph.size() - 8))) == 1.0  # too few loops
 
@@ -301,8 +325,8 @@ def test_estimated_noise_scale_keeps_real_loops_that_share_a_small_bias():
     every = np.ones(graph.size())
     without_biased = every.copy()
     without_biased[biased] = 0.0
-    first = _refined(graph, initial, every)
-    assert not _scaled_run_wins(graph, first, every, _refined(graph, first, without_biased), without_biased, known)
+    first = refined(graph, initial, every)
+    assert not _scaled_run_wins(graph, first, every, refined(graph, first, without_biased), without_biased, known)
     _, weights = robust_optimize(graph, initial, known, GraphConfig(robust="gnc_tls", noise_scale="estimated"))
     assert np.all(weights >= 0.5)
 
@@ -310,15 +334,15 @@ def test_estimated_noise_scale_keeps_real_loops_that_share_a_small_bias():
 def test_the_scaled_result_wins_only_when_the_loops_it_dropped_were_bending_the_others():
     graph, initial, known, wrong, _ = _loose_graph(tail=5.0)
     every = np.ones(graph.size())
-    with_wrong = _refined(graph, initial, every)
+    with_wrong = refined(graph, initial, every)
     without_wrong = every.copy()
     without_wrong[wrong] = 0.0
-    clean = _refined(graph, initial, without_wrong)
+    clean = refined(graph, initial, without_wrong)
     assert _scaled_run_wins(graph, with_wrong, every, clean, without_wrong, known)  # parking-garage's case
     tail = [len(known) + n for n in range(0, 60, 10)]
     without_tail = without_wrong.copy()
     without_tail[tail] = 0.0  # real loops with 5x the noise: dropping them changes little (sphere2500's case)
-    assert not _scaled_run_wins(graph, clean, without_wrong, _refined(graph, clean, without_tail), without_tail, known)
+    assert not _scaled_run_wins(graph, clean, without_wrong, refined(graph, clean, without_tail), without_tail, known)
 
 
 def _stadium_lap(step: float = 5.0, straight: float = 80.0, radius: float = 12.0) -> list[np.ndarray]:
@@ -409,11 +433,11 @@ def test_a_wrong_loop_absorbed_by_loosely_held_poses_is_removed(seed):
     wrong = graph.size()
     graph.add(factor(24, 36, loop_sigmas, np.array([0.0, 0.0, 0.2, 8.0, 0.0, 0.0])))
     thresholds = np.full(len(_loop_indices(graph.size(), known)), chi2.ppf(GraphConfig().inlier_probability, 6))
-    values, weights = _truncated(graph, _refined(graph, initial, np.ones(graph.size())), np.ones(graph.size()),
+    values, weights = _truncated(graph, refined(graph, initial, np.ones(graph.size())), np.ones(graph.size()),
                                  known, thresholds)  # fmt: skip
     assert weights[wrong] == 1.0 and 2.0 * graph.at(wrong).error(values) < 0.1 * thresholds[0]
     values, weights = _pruned(graph, values, weights, known, thresholds, GraphConfig().inlier_probability)
     assert weights[wrong] == 0.0 and np.all(np.delete(weights, wrong) == 1.0)
-    clean = _refined(graph, initial, weights)
+    clean = refined(graph, initial, weights)
     offsets = [values.atPose3(i).translation() - clean.atPose3(i).translation() for i in range(40)]
     assert np.linalg.norm(offsets, axis=1).max() < 1e-3
