@@ -12,6 +12,8 @@ from sandro_core.geometry import rotation_angle
 from sandro_slam import Session, SlamConfig, merge_sessions
 from sandro_slam.factors import odometry_covariance
 from sandro_slam.merge.free_space import free_space_conflict, free_voxels
+from sandro_slam.merge.graph import build_graph
+from sandro_slam.merge.loops import InterSessionLoop
 from sandro_slam.session import SessionEdge
 
 LAYOUT = CityLayout(blocks_x=6)
@@ -102,3 +104,40 @@ def test_free_space_conflict_sees_an_object_where_the_street_was_empty():
     pole = np.c_[np.full(8, 5.0), np.zeros(8), np.linspace(-1.0, 2.5, 8)]
     hits, tested = free_space_conflict(free, plane, pole, np.eye(4), 0.5)
     assert tested == 8 and hits >= 6
+
+
+def test_the_merged_graph_widens_every_loop_by_the_odometry_across_its_keyframes():
+    def session(name: str, sigma: float) -> Session:
+        odometry = [SessionEdge(k, k + 1, _yaw(0.0, 10.0, 0.0), np.eye(6) * sigma**2, "odometry", True) for k in (0, 1)]
+        loop = SessionEdge(0, 2, _yaw(0.0, 20.0, 0.0), np.eye(6) * 1e-4, "loop", True)
+        poses = {k: _yaw(0.0, 10.0 * k, 0.0) for k in range(3)}
+        points = {k: np.zeros((1, 3)) for k in range(3)}
+        return Session(
+            name,
+            [0, 1, 2],
+            poses,
+            points,
+            odometry + [loop],
+            np.arange(3.0),
+            np.arange(3),
+            np.tile(np.eye(4), (3, 1, 1)),
+        )
+
+    sessions = [session("a", 0.1), session("b", 0.2)]
+    inter = InterSessionLoop(0, 2, 1, 1, np.eye(4), np.eye(6) * 1e-4, 50, 0.9, "guided", voted=True)
+    T_merged = {0: np.eye(4), 1: np.eye(4)}
+    plain, _, known, loop_factors = build_graph(sessions, T_merged, [inter], 1e-3)
+    widened = build_graph(sessions, T_merged, [inter], 1e-3, loop_submap_noise=True)[0]
+    assert widened.size() == plain.size() and loop_factors[0][1] == plain.size() - 1
+
+    def variances(graph, index: int) -> np.ndarray:
+        return np.diag(graph.at(index).noiseModel().covariance())
+
+    intra_loops = [i for i in known if i and np.allclose(variances(plain, i), 1e-4)]
+    assert len(intra_loops) == 2
+    np.testing.assert_allclose(variances(widened, intra_loops[0]), 1e-4 + 2 * 0.1**2)  # keyframes 0 and 2 of a
+    np.testing.assert_allclose(variances(widened, intra_loops[1]), 1e-4 + 2 * 0.2**2)
+    np.testing.assert_allclose(variances(widened, plain.size() - 1), 1e-4 + 0.1**2 + 0.2**2)  # a's 2, b's 1
+    for index in known:
+        if index not in intra_loops:
+            np.testing.assert_allclose(variances(widened, index), variances(plain, index))
