@@ -107,9 +107,9 @@ class PoseGraph:
         return loop
 
     def optimize(self, estimate_odometry_noise: bool = False) -> dict[int, np.ndarray]:
-        """Optimise; returns T_world_keyframe per key and updates each loop's weight. With
-        `estimate_odometry_noise`, the odometry covariances are then scaled to fit the loops the robust back end kept
-        (`noise_scale.rescale_odometry`; the factor in `odometry_scale`)."""
+        """Optimise; returns T_world_keyframe per key and updates each loop's weight. The kept loops weigh as their
+        `estimation_factor`s in the estimate. With `estimate_odometry_noise`, the odometry covariances are then scaled
+        to fit the loops the robust back end kept (`noise_scale.rescale_odometry`; the factor in `odometry_scale`)."""
         if self.values.size() == 0:
             return {}
         if self._isam is not None:
@@ -127,8 +127,8 @@ class PoseGraph:
     def update_estimate(self) -> None:
         """Re-optimise for the estimate alone, cheaper than `optimize`, which decides the loops afresh: in batch
         mode from the latest estimate rather than the odometry, and with the stated loop covariances
-        (noise_scale 'given': no second GNC run). What the loop closure module needs to steer its candidate
-        search between keyframes."""
+        (noise_scale 'given': no second GNC run), the kept loops then weighing as in `optimize`. What the loop
+        closure module needs to steer its candidate search between keyframes."""
         if self._isam is not None:
             self._optimize_incremental()
         elif self.values.size() > 0:
