@@ -3,6 +3,8 @@ translation], for a right (body-frame) perturbation."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import gtsam
 import numpy as np
 
@@ -24,6 +26,22 @@ def scaled_noise(factor: gtsam.BetweenFactorPose3, scale: float) -> gtsam.Betwee
     """The same factor with its (Gaussian) covariance times `scale`."""
     covariance = np.asarray(gaussian_noise(factor).covariance()) * scale
     return between_factor(factor.keys()[0], factor.keys()[1], factor.measured().matrix(), covariance)
+
+
+def keyframe_odometry_covariances(odometry: Iterable[tuple[int, int, np.ndarray]]) -> dict[int, np.ndarray]:
+    """Per keyframe key, the 6x6 covariance of the odometry factor across its keyframe: the one that ends at it (the
+    first keyframe: the one that starts at it). `odometry`: (from key, to key, covariance) in driving order."""
+    covariances: dict[int, np.ndarray] = {}
+    for start, end, covariance in odometry:
+        covariances[end] = covariance
+        covariances.setdefault(start, covariance)
+    return covariances
+
+
+def widened_loop_covariance(covariance: np.ndarray, *keyframe_odometry: np.ndarray | None) -> np.ndarray:
+    """A loop's 6x6 covariance plus the odometry covariance across each of its two keyframes (None: none known): a
+    loop aligns two submaps, each only as rigid as the odometry that built it (`GraphConfig.loop_submap_noise`)."""
+    return covariance + sum((c for c in keyframe_odometry if c is not None), np.zeros((6, 6)))
 
 
 def odometry_covariance(distance: float, config: GraphConfig) -> np.ndarray:

@@ -9,7 +9,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from sandro_slam.config import GraphConfig
-from sandro_slam.factors import between_factor, gaussian_noise
+from sandro_slam.factors import between_factor, gaussian_noise, keyframe_odometry_covariances, widened_loop_covariance
 from sandro_slam.noise_scale import rescale_odometry
 from sandro_slam.robust_backend import refined, robust_optimize
 
@@ -35,8 +35,8 @@ class PoseGraph:
     and holds the loops the robust back end accepts.
 
     With `loop_submap_noise`, the estimate is solved, once the loops are decided, with each kept loop's covariance
-    widened by the odometry covariance of each of its two keyframes (`estimation_factor`): a loop aligns two
-    submaps, and each is only as rigid as the odometry that built it.
+    widened by the odometry covariance of each of its two keyframes (`factors.widened_loop_covariance`): a loop
+    aligns two submaps, and each is only as rigid as the odometry that built it.
     """
 
     def __init__(self, config: GraphConfig):
@@ -46,8 +46,6 @@ class PoseGraph:
         self.loops: list[LoopFactor] = []
         self.odometry_scale = 1.0  # on the odometry covariances in the last optimisation (noise_scale)
         self._known_inliers: list[int] = []
-        self._keyframe_odometry: dict[int, int] = {}  # key -> index of the odometry factor across its keyframe: the
-        # one that ends at it (the first keyframe: the one that starts at it)
         self._estimate = gtsam.Values()
         self._isam = gtsam.ISAM2() if config.mode == "incremental" else None
         self._isam_slots: dict[int, int] = {}  # graph factor index -> ISAM2 factor slot (accepted loops)
@@ -74,8 +72,6 @@ class PoseGraph:
             previous = self.values.atPose3(odometry_from)
             T_prev_key = previous.between(pose).matrix()
             factor = between_factor(odometry_from, key, T_prev_key, odometry_covariance_)
-            self._keyframe_odometry[key] = self.graph.size()
-            self._keyframe_odometry.setdefault(odometry_from, self.graph.size())
             # Start from the current estimate of the previous keyframe so new poses follow the corrections.
             prev_estimate = self._estimate.atPose3(odometry_from) if self._estimate.exists(odometry_from) else previous
             initial = prev_estimate.compose(gtsam.Pose3(T_prev_key))
@@ -107,9 +103,10 @@ class PoseGraph:
         return loop
 
     def optimize(self, estimate_odometry_noise: bool = False) -> dict[int, np.ndarray]:
-        """Optimise; returns T_world_keyframe per key and updates each loop's weight. The kept loops weigh as their
-        `estimation_factor`s in the estimate. With `estimate_odometry_noise`, the odometry covariances are then scaled
-        to fit the loops the robust back end kept (`noise_scale.rescale_odometry`; the factor in `odometry_scale`)."""
+        """Optimise; returns T_world_keyframe per key and updates each loop's weight. The kept loops weigh in the
+        estimate as `_estimation_factors` makes them. With `estimate_odometry_noise`, the odometry covariances are then
+        scaled to fit the loops the robust back end kept (`noise_scale.rescale_odometry`; the factor in
+        `odometry_scale`)."""
         if self.values.size() == 0:
             return {}
         if self._isam is not None:
@@ -145,17 +142,6 @@ class PoseGraph:
         error = self.graph.at(loop.factor_index).error(self._estimate)  # half the squared whitened error
         return error <= 0.5 * chi2.ppf(self.config.inlier_probability, 6)
 
-    def estimation_factor(self, loop: LoopFactor) -> gtsam.BetweenFactorPose3:
-        """The loop's factor as the estimate weighs it once loops are decided: with `loop_submap_noise`, its
-        covariance plus the covariances of the odometry factors across its two keyframes; else its own."""
-        if not self.config.loop_submap_noise:
-            return self.graph.at(loop.factor_index)
-        covariance = loop.covariance.copy()
-        for key in (loop.target_key, loop.source_key):
-            if key in self._keyframe_odometry:
-                covariance += gaussian_noise(self.graph.at(self._keyframe_odometry[key])).covariance()
-        return between_factor(loop.target_key, loop.source_key, loop.T_target_source, covariance)
-
     def rejected_loops(self) -> list[LoopFactor]:
         """Loops the robust back end weighted below 0.5 in the last optimisation."""
         return [loop for loop in self.loops if loop.weight < 0.5]
@@ -178,26 +164,46 @@ class PoseGraph:
         for index in self._known_inliers:
             factors.add(self.graph.at(index))
         by_index = {loop.factor_index: loop for loop in self.loops}
-        for index in accepted:
-            factors.add(self.estimation_factor(by_index[index]))
+        for factor in self._estimation_factors([by_index[index] for index in accepted]):
+            factors.add(factor)
         slots = list(self._isam.update(factors, self._estimate).getNewFactorsIndices())
         self._isam_slots = dict(zip(accepted, slots[len(self._known_inliers) :]))
 
     def _with_loop_submap_noise(self, values: gtsam.Values) -> gtsam.Values:
         """Batch mode with `loop_submap_noise`: `values` solved again on the factors the robust back end kept,
-        each loop as its `estimation_factor`."""
+        each loop as `_estimation_factors` makes it."""
         if not self.config.loop_submap_noise or not any(loop.weight >= 0.5 for loop in self.loops):
             return values
         return refined(self._estimation_graph(), values, self._weights)
 
     def _estimation_graph(self) -> gtsam.NonlinearFactorGraph:
-        """The graph with each loop's factor at its index replaced by its `estimation_factor`."""
+        """The graph with each loop's factor at its index replaced as `_estimation_factors` makes it."""
         if not self.config.loop_submap_noise:
             return self.graph
         graph = self.graph.clone()
-        for loop in self.loops:
-            graph.replace(loop.factor_index, self.estimation_factor(loop))
+        for loop, factor in zip(self.loops, self._estimation_factors(self.loops)):
+            graph.replace(loop.factor_index, factor)
         return graph
+
+    def _estimation_factors(self, loops: list[LoopFactor]) -> list[gtsam.BetweenFactorPose3]:
+        """The loops' factors as the estimate weighs them once loops are decided: with `loop_submap_noise`, each
+        covariance widened by the odometry across its two keyframes (`factors.widened_loop_covariance`); else their
+        own."""
+        if not self.config.loop_submap_noise:
+            return [self.graph.at(loop.factor_index) for loop in loops]
+        odometry = (self.graph.at(index) for index in self._known_inliers[1:])  # the first is the prior
+        across = keyframe_odometry_covariances(
+            (*factor.keys(), gaussian_noise(factor).covariance()) for factor in odometry
+        )
+        return [
+            between_factor(
+                loop.target_key,
+                loop.source_key,
+                loop.T_target_source,
+                widened_loop_covariance(loop.covariance, across.get(loop.target_key), across.get(loop.source_key)),
+            )
+            for loop in loops
+        ]
 
     def _robust_optimize(self, initial: gtsam.Values, config: GraphConfig | None = None) -> gtsam.Values:
         if not self.loops:
@@ -221,8 +227,8 @@ class PoseGraph:
         ]
         if added or removed:
             new_factors = gtsam.NonlinearFactorGraph()
-            for loop in added:
-                new_factors.add(self.estimation_factor(loop))
+            for factor in self._estimation_factors(added):
+                new_factors.add(factor)
             result = self._isam.update(new_factors, gtsam.Values(), removed)
             for loop, slot in zip(added, result.getNewFactorsIndices()):
                 self._isam_slots[loop.factor_index] = slot

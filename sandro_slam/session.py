@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from sandro_slam.factors import between_factor, gaussian_noise
+from sandro_slam.factors import between_factor, gaussian_noise, keyframe_odometry_covariances
 from sandro_slam.offline import SlamResult
 
 
@@ -82,12 +82,9 @@ class Session:
     def keyframe_odometry_covariances(self) -> dict[int, np.ndarray]:
         """Per keyframe key, the 6x6 covariance of the odometry edge across its keyframe: the one that ends at it (the
         first keyframe: the one that starts at it)."""
-        covariances: dict[int, np.ndarray] = {}
-        for edge in self.edges:
-            if edge.kind == "odometry":
-                covariances[edge.source] = edge.covariance
-                covariances.setdefault(edge.target, edge.covariance)
-        return covariances
+        return keyframe_odometry_covariances(
+            (edge.target, edge.source, edge.covariance) for edge in self.edges if edge.kind == "odometry"
+        )
 
     def frame_poses(self, keyframe_poses: dict[int, np.ndarray] | None = None) -> np.ndarray:
         """(F, 4, 4) T_world_frame of every frame, moved with its keyframe (default: the session's poses)."""

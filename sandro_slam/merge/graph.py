@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from sandro_slam.factors import between_factor
+from sandro_slam.factors import between_factor, widened_loop_covariance
 from sandro_slam.merge.loops import InterSessionLoop
 from sandro_slam.session import Session
 
@@ -55,19 +55,18 @@ def build_graph(
     """The merged graph over the joined sessions: (graph, initial values, known inlier factor indices,
     [(loop, factor index)] of the inter-session loops). With `loop_submap_noise` the same factors at the same
     indices, but each loop, the sessions' and the inter-session ones, with its covariance plus the odometry
-    covariance across each of its two keyframes (as `PoseGraph.estimation_factor`)."""
+    covariance across each of its two keyframes (`factors.widened_loop_covariance`, as `PoseGraph` weighs them)."""
     graph, values, known = gtsam.NonlinearFactorGraph(), gtsam.Values(), []
     prior = gtsam.noiseModel.Isotropic.Sigma(6, prior_sigma)
-    odometry = {index: sessions[index].keyframe_odometry_covariances() for index in T_merged}
+    across = {index: sessions[index].keyframe_odometry_covariances() for index in T_merged} if loop_submap_noise else {}
 
     def covariance(loop_covariance: np.ndarray, target: tuple[int, int], source: tuple[int, int]) -> np.ndarray:
+        """`loop_covariance`, widened with `loop_submap_noise`; target and source: (session index, key)."""
         if not loop_submap_noise:
             return loop_covariance
-        widened = loop_covariance.copy()
-        for session, key in (target, source):
-            if key in odometry[session]:
-                widened += odometry[session][key]
-        return widened
+        return widened_loop_covariance(
+            loop_covariance, *(across[session].get(key) for session, key in (target, source))
+        )
 
     for index in sorted(T_merged):
         session = sessions[index]
