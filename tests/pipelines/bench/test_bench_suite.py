@@ -43,6 +43,12 @@ def test_targets_name_every_miss():
     good = {**row, "ate_sandro_slam": 0.1, "loops_wrong_kept": 0, "loops_real_rejected": 0, "fps_sandro_slam": 30.0}
     assert check_targets([good]) == []
     assert check_targets([{**good, "revisits": False, "ate_perfect_loop_floor": 0.01}]) == []
+    refined = {**good, "ate_kiss_icp": 1.0, "ate_sandro_slam_refined": 0.15, "refine_time_share": 0.8}
+    assert check_targets([refined]) == []
+    assert check_targets([{**refined, "ate_sandro_slam_refined": 0.3, "refine_time_share": 1.5}]) == [
+        "refined: median ATE 0.30x KISS-ICP's (target <= 0.2x)",
+        "refined: median time 2.50x the first pass's (target <= 2x)",
+    ]
 
 
 @pytest.mark.slow
