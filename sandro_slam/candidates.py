@@ -8,17 +8,37 @@ import numpy as np
 from sandro_slam.config import LoopDetectionConfig
 
 
+def span_centres(anchors: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+    """The middle [m, world] of the stretch of travel each keyframe's submap covers, from the keyframes'
+    anchor positions (`anchors`, in the order the keyframes were added): a submap spans the travel from its
+    anchor to the next keyframe's, and the newest keyframe's next anchor, not known yet, is extrapolated from
+    its last step."""
+    keys = list(anchors)
+    centres = {}
+    for i, key in enumerate(keys):
+        if i + 1 < len(keys):
+            centres[key] = 0.5 * (anchors[key] + anchors[keys[i + 1]])
+        elif i > 0:
+            centres[key] = anchors[key] + 0.5 * (anchors[key] - anchors[keys[i - 1]])
+        else:
+            centres[key] = anchors[key]
+    return centres
+
+
 def radius_candidates(
     key: int,
-    positions: dict[int, np.ndarray],
+    centres: dict[int, np.ndarray],
     travelled: dict[int, float],
     config: LoopDetectionConfig,
 ) -> list[int]:
-    """Keyframes within `radius` metres of `key` in the current estimate, at least `exclude_recent` metres
-    of travel back, nearest first, at most `max_candidates`."""
-    here = positions[key]
+    """Keyframes whose submaps' span centres (`span_centres`, current estimate) lie within `radius` metres of
+    `key`'s, at least `exclude_recent` metres of travel back, nearest first, at most `max_candidates`.
+
+    Centres rather than anchors: on a stretch driven back the other way, the anchor nearest to the new keyframe
+    starts a submap over the stretch the new keyframe has not covered yet."""
+    here = centres[key]
     near = []
-    for other, position in positions.items():
+    for other, position in centres.items():
         if other == key or travelled[key] - travelled[other] < config.exclude_recent:
             continue
         distance = float(np.linalg.norm(position - here))

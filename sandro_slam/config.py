@@ -49,7 +49,9 @@ class KeyframeConfig(StrictModel):
 class LoopDetectionConfig(StrictModel):
     """Which keyframe pairs are tried as loop closures, and where that work runs."""
 
-    radius: float | None = scaled(25.0, "candidates within this distance [m] of the new keyframe")
+    radius: float | None = scaled(
+        25.0, "candidates whose submaps' middles lie within this distance [m] of the new keyframe's"
+    )
     exclude_recent: float | None = scaled(50.0, "skip keyframes fewer than this many metres back", True)
     max_candidates: int = Field(2, ge=1, description="nearest candidates registered per keyframe")
     max_loops_per_keyframe: int = Field(2, ge=1, description="stop registering candidates after this many loops")

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from sandro_slam.candidates import PlaceRecognition, RingKeyRecognition, radius_candidates
+from sandro_slam.candidates import PlaceRecognition, RingKeyRecognition, radius_candidates, span_centres
 from sandro_slam.config import SlamConfig
 from sandro_slam.factors import between_factor, odometry_covariance
 from sandro_slam.loop_registration import MIN_SUBMAP_POINTS, SubmapDescription, describe_submap, register_submaps
@@ -115,8 +115,9 @@ class LoopCloser:
 
     def _close_loops(self, key: int, points: np.ndarray) -> list[LoopClosure]:
         found: dict[int, list[str]] = {}
-        positions = {k: self._estimates[k][:3, 3] for k in self._submaps}
-        for other in radius_candidates(key, positions, self._travelled, self.config.loops):
+        centres = span_centres({k: self._estimates[k][:3, 3] for k in self._travelled})
+        with_submaps = {k: centres[k] for k in self._submaps}
+        for other in radius_candidates(key, with_submaps, self._travelled, self.config.loops):
             found.setdefault(other, []).append("radius")
         if self._place_recognition is not None:
             for other in self._place_recognition.candidates(key, points, self._travelled):

@@ -10,8 +10,8 @@ from scipy.spatial import cKDTree
 
 from pipelines.simulation import simulate_sequence
 from sandro_core.geometry import transform_points
-from sandro_slam.candidates import PlaceRecognition, RingKeyRecognition
-from sandro_slam.config import KeyframeConfig, SlamConfig
+from sandro_slam.candidates import PlaceRecognition, RingKeyRecognition, radius_candidates, span_centres
+from sandro_slam.config import KeyframeConfig, LoopDetectionConfig, SlamConfig
 from sandro_slam.keyframes import ANCHOR_SCANS, KeyframeBuilder
 
 REFERENCE = SlamConfig().resolved()  # every length at its reference value
@@ -108,6 +108,24 @@ class _Recorder:
     def get_closures(self, key, points):
         self.seen.append(key)
         return []
+
+
+def test_radius_candidates_are_the_keyframes_whose_submaps_cover_the_same_stretch():
+    # Out along x with a keyframe every 10 m (each submap spans 10 m ahead of its anchor), back the other way.
+    out = [0.0, 10.0, 20.0, 30.0, 40.0, 50.0]
+    back = [44.0, 34.0, 24.0]
+    anchors = {key: np.array([x, 0.0, 0.0]) for key, x in enumerate(out + back)}
+    travelled = dict(zip(anchors, np.arange(len(anchors)) * 10.0))
+    config = LoopDetectionConfig(radius=25.0, exclude_recent=30.0, max_candidates=1)
+    centres = span_centres(anchors)
+    assert centres[1][0] == 15.0 and centres[8][0] == 19.0  # the newest extrapolated: it covers 24 -> 14 m
+    # The nearest anchor (20 m, its submap over 20-30 m) lies ahead of the way back; the submap over 10-20 m
+    # covers what keyframe 8 has seen.
+    assert radius_candidates(8, centres, travelled, config) == [1]
+    # Driven again the same way, the submap over the same stretch starts at the nearest anchor.
+    again = {**anchors, 9: np.array([12.0, 0.0, 0.0]), 10: np.array([22.0, 0.0, 0.0])}
+    travelled_again = {**travelled, 9: 100.0, 10: 110.0}
+    assert radius_candidates(10, span_centres(again), travelled_again, config) == [2]
 
 
 def test_place_recognition_sees_keyframes_map_closures_spacing_apart():

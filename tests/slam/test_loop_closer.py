@@ -26,14 +26,15 @@ def _at(x: float) -> np.ndarray:
 
 
 def _revisit(place: np.ndarray, estimate_x: float) -> list:
-    """Keyframe 0 at the place; keyframe 1 elsewhere after 30 m; keyframe 2 at the place again after 60 m more,
-    whose estimate drift has moved to `estimate_x` [m] from keyframe 0. The loops keyframe 2 closes."""
+    """Keyframe 0 at the place; keyframe 1 elsewhere, 30 m back along x; keyframe 2 at the place again after 60 m
+    more, whose estimate drift has moved to `estimate_x` [m] from keyframe 0 (the middles of the stretches the two
+    submaps cover lie further apart still). The loops keyframe 2 closes."""
     config = SlamConfig()  # radius 25 m, 50 m of travel back at least, max_drift 0.1
     config.loops.use_map_closures = False
     closer = LoopCloser(config)
     elsewhere = np.random.default_rng(0).uniform([-30, -30, -2], [30, 30, 0], (20000, 3))
     assert closer.add_keyframe(0, _at(0.0), place) == []
-    assert closer.add_keyframe(1, _at(30.0), elsewhere, distance=30.0) == []
+    assert closer.add_keyframe(1, _at(-30.0), elsewhere, distance=30.0) == []
     return closer.add_keyframe(2, _at(estimate_x), place, distance=60.0)
 
 
