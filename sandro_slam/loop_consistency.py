@@ -42,11 +42,11 @@ def supported_loops(graph: gtsam.NonlinearFactorGraph, known_inliers: list[int])
         if ends_of is None:
             continue
         (ca, oa, ra), (cb, ob, rb) = ends_of
-        T = _matrix(factor.measured())
+        pose = factor.measured()
         if (ca, oa) > (cb, ob):  # the same direction for every loop: the lower end first
-            (ca, oa, ra), (cb, ob, rb), T = (cb, ob, rb), (ca, oa, ra), np.linalg.inv(T)
+            (ca, oa, ra), (cb, ob, rb), pose = (cb, ob, rb), (ca, oa, ra), pose.inverse()
         ends.append((position, ca, oa, cb, ob, ra, rb))
-        measured.append(T)
+        measured.append(_matrix(pose))
     if len(ends) < 2:
         return supported
     ends_arr = np.array(ends)
@@ -105,9 +105,8 @@ class _Chains:
             if not _is_between(factor):
                 continue
             a, b = factor.keys()
-            T = _matrix(factor.measured())
-            neighbours.setdefault(a, []).append((b, T))
-            neighbours.setdefault(b, []).append((a, np.linalg.inv(T)))
+            neighbours.setdefault(a, []).append((b, _matrix(factor.measured())))
+            neighbours.setdefault(b, []).append((a, _matrix(factor.measured().inverse())))
         self._where: dict[int, tuple[int, int, int]] = {}
         poses = []
         chain = -1

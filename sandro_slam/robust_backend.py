@@ -19,7 +19,6 @@ import functools
 
 import gtsam
 import numpy as np
-import scipy.linalg
 from scipy.stats import chi2
 
 from sandro_slam.config import GraphConfig
@@ -105,9 +104,10 @@ def robust_optimize(
             else:
                 scaled = _gnc(graph, initial, known_inliers, config, 0.5 * thresholds[0] * scale)
             scaled_weights = readmitted(graph, *scaled, known_inliers)
-            scaled = refined(graph, scaled[0], scaled_weights), scaled_weights
-            if _scaled_run_wins(graph, values, weights, *scaled, known_inliers):
-                values, weights = scaled
+            if not np.array_equal(scaled_weights, weights):  # the same loops: the first run's solution
+                scaled = refined(graph, scaled[0], scaled_weights), scaled_weights
+                if _scaled_run_wins(graph, values, weights, *scaled, known_inliers):
+                    values, weights = scaled
     return values, weights
 
 
@@ -279,11 +279,15 @@ def _admitted(
     for index, threshold in outside:
         factor = graph.at(index)
         A, b = factor.linearize(values).jacobian()  # whitened by the loop's own covariance; columns in key order
+        M = loop_scale * np.eye(len(b))
+        column = 0
         for key in factor.keys():
             if key not in covariance:
                 covariance[key] = covariances.block(key, key)
-        S = scipy.linalg.block_diag(*[covariance[key] for key in factor.keys()])
-        innovation = float(b @ np.linalg.solve(loop_scale * np.eye(len(b)) + pose_scale * A @ S @ A.T, b))
+            A_key = A[:, column : column + len(covariance[key])]
+            M += pose_scale * A_key @ covariance[key] @ A_key.T
+            column += len(covariance[key])
+        innovation = float(b @ np.linalg.solve(M, b))
         if innovation <= threshold:
             admitted[index] = 1.0
     if np.array_equal(admitted, weights):

@@ -30,6 +30,9 @@ Metrics of `two` and `three`, per session S after the first (A):
         (`_perfectly_registered`). What is left there is the sessions' own SLAM errors.
     first_pose_error_{m,deg}_S: the session's first pose against where the rigid fit of its own trajectory
         to ground truth puts it (single-session SLAM, no merge).
+    inter_session_loop_error_median_{deg,m}, inter_session_loops_wrong, _wrong_kept, _real_rejected: every
+        verified inter-session loop against the true relative pose of its keyframes (wrong: more than 2 deg or
+        0.5 m off, as in the suite), the wrong ones kept in the merged graph, the real ones left out of it.
     ate_single_S, ate_merged_S, ate_ratio_S: ATE of S's own run; ATE in the merged frame (one SE3 alignment
         of all merged trajectories together); their ratio. ate_merged_over_perfect_S: ate_merged_S over
         perfect_ate_merged_S (every session, A too). merge_seconds: merge_sessions alone;
@@ -48,6 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from pipelines.bench.common import default_out_dir, write_csv
+from pipelines.bench.suite import WRONG_LOOP_DEG, WRONG_LOOP_M
 from pipelines.evaluation import align_se3, ate, pose_errors
 from pipelines.plots import plot_merges
 from pipelines.simulation import CityLayout, simulate_sequence
@@ -250,7 +254,43 @@ def _accuracy(sessions, result) -> dict:
         )
     tested = [lp.conflict for lp in result.loops if not np.isnan(lp.conflict)]
     out["free_space_conflict_median"] = float(np.median(tested)) if tested else None
+    out.update(_loops_against_truth(sessions, result))
     return out
+
+
+def _loops_against_truth(sessions, result) -> dict[str, float | int]:
+    """The inter-session loops against the true relative pose of their keyframes' anchor scans: median error,
+    wrong ones (more than WRONG_LOOP_DEG or WRONG_LOOP_M off) kept in the merged graph, real ones rejected (by the
+    vote or the back end)."""
+    anchors = [_anchor_frames(session) for session, _, _ in sessions]
+    truths = [truth for _, truth, _ in sessions]
+    errors, kept = [], []
+    for loop in result.loops:
+        target = truths[loop.target_session][anchors[loop.target_session][loop.target_key]]
+        source = truths[loop.source_session][anchors[loop.source_session][loop.source_key]]
+        errors.append(pose_errors(loop.T_target_source, np.linalg.inv(target) @ source))
+        kept.append(loop.weight >= 0.5)
+    if not errors:
+        return {}
+    errors, kept = np.array(errors), np.array(kept)
+    wrong = (errors[:, 0] > WRONG_LOOP_DEG) | (errors[:, 1] > WRONG_LOOP_M)
+    return {
+        "inter_session_loop_error_median_deg": float(np.median(errors[:, 0])),
+        "inter_session_loop_error_median_m": float(np.median(errors[:, 1])),
+        "inter_session_loops_wrong": int(wrong.sum()),
+        "inter_session_loops_wrong_kept": int((wrong & kept).sum()),
+        "inter_session_loops_real_rejected": int((~wrong & ~kept).sum()),
+    }
+
+
+def _anchor_frames(session: Session) -> dict[int, int]:
+    """Per keyframe key, its anchor scan: the frame at the keyframe's own pose."""
+    offsets = np.linalg.norm(session.T_keyframe_frame - np.eye(4), axis=(1, 2))
+    anchors = {}
+    for key in session.keys:
+        mine = np.flatnonzero(session.keyframe_of_frame == key)
+        anchors[int(key)] = int(mine[np.argmin(offsets[mine])])
+    return anchors
 
 
 def _put(out: dict, metric: str, name: str, errors: tuple[float, float]) -> None:

@@ -44,9 +44,10 @@ def _loop_graph(is3d: bool, poses: int = 40, loops: int = 15, seed: int = 0):
     return graph, values
 
 
+@pytest.mark.parametrize("loops", [15, 150])  # the denser graph eliminates into supernodes of up to 20 poses
 @pytest.mark.parametrize("is3d", [False, True])
-def test_blocks_equal_gtsam_marginals(is3d):
-    graph, values = _loop_graph(is3d)
+def test_blocks_equal_gtsam_marginals(is3d, loops):
+    graph, values = _loop_graph(is3d, loops=loops)
     covariances = FactorCovariances(graph, values)
     marginals = gtsam.Marginals(graph, values)
     for key in range(40):

@@ -1,11 +1,14 @@
 """`sandro-bench merge`'s reference merge: perfect registration, sessions moved rigidly."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipelines.bench.merge import _joint_ate, _perfectly_registered, _suite_sequences
+from pipelines.bench.merge import _joint_ate, _loops_against_truth, _perfectly_registered, _suite_sequences
 from pipelines.evaluation import pose_errors
+from sandro_slam.merge.loops import InterSessionLoop
 
 
 def _drive(start: tuple[float, float], heading_deg: float, n: int = 60) -> np.ndarray:
@@ -84,3 +87,26 @@ def test_suite_sessions_are_two_or_three_different_sequences_of_one_site():
     ):
         with pytest.raises(ValueError, match=message):
             _suite_sequences(names)
+
+
+def test_inter_session_loops_are_judged_against_the_anchors_truth():
+    """Keyframes of two frames each, the anchor second in B's; a right loop kept, a wrong one (1 m off) kept and
+    a right one (0.1 m off) rejected."""
+    truth_a, truth_b = TRUTH_A[:4], TRUTH_S[40:44]
+    step = _transform(0.0, [1.0, 0.0, 0.0])
+    back = np.linalg.inv(step)
+    a = SimpleNamespace(keys=[0, 1], keyframe_of_frame=np.array([0, 0, 1, 1]),
+                        T_keyframe_frame=np.stack([np.eye(4), step, np.eye(4), step]))  # fmt: skip
+    b = SimpleNamespace(keys=[0, 1], keyframe_of_frame=np.array([0, 0, 1, 1]),
+                        T_keyframe_frame=np.stack([back, np.eye(4), back, np.eye(4)]))  # fmt: skip
+
+    def loop(target_key: int, source_key: int, off_m: float, weight: float) -> InterSessionLoop:
+        T = np.linalg.inv(truth_a[2 * target_key]) @ truth_b[2 * source_key + 1] @ _transform(0.0, [0.0, off_m, 0.0])
+        return InterSessionLoop(0, target_key, 1, source_key, T, np.eye(6), 50, 0.9, "guided", weight=weight)
+
+    result = SimpleNamespace(loops=[loop(0, 0, 0.0, 1.0), loop(1, 0, 1.0, 1.0), loop(1, 1, 0.1, 0.0)])
+    metrics = _loops_against_truth([(a, truth_a, None), (b, truth_b, None)], result)
+    assert metrics["inter_session_loops_wrong"] == 1
+    assert metrics["inter_session_loops_wrong_kept"] == 1
+    assert metrics["inter_session_loops_real_rejected"] == 1
+    assert metrics["inter_session_loop_error_median_m"] == pytest.approx(0.1)
