@@ -105,8 +105,9 @@ class _Chains:
             if not _is_between(factor):
                 continue
             a, b = factor.keys()
-            neighbours.setdefault(a, []).append((b, _matrix(factor.measured())))
-            neighbours.setdefault(b, []).append((a, _matrix(factor.measured().inverse())))
+            step = factor.measured()
+            neighbours.setdefault(a, []).append((b, _matrix(step)))
+            neighbours.setdefault(b, []).append((a, _matrix(step.inverse())))
         self._where: dict[int, tuple[int, int, int]] = {}
         poses = []
         chain = -1

@@ -32,7 +32,8 @@ Metrics of `two` and `three`, per session S after the first (A):
         to ground truth puts it (single-session SLAM, no merge).
     inter_session_loop_error_median_{deg,m}, inter_session_loops_wrong, _wrong_kept, _real_rejected: every
         verified inter-session loop against the true relative pose of its keyframes (wrong: more than 2 deg or
-        0.5 m off, as in the suite), the wrong ones kept in the merged graph, the real ones left out of it.
+        0.5 m off, as in the suite; the median is of all of them, where the suite's is of the real ones), the
+        wrong ones kept in the merged graph, the real ones left out of it.
     ate_single_S, ate_merged_S, ate_ratio_S: ATE of S's own run; ATE in the merged frame (one SE3 alignment
         of all merged trajectories together); their ratio. ate_merged_over_perfect_S: ate_merged_S over
         perfect_ate_merged_S (every session, A too). merge_seconds: merge_sessions alone;
