@@ -1,16 +1,16 @@
 """The robust back end: which loop factors of a pose graph to keep, under a truncated least squares (TLS) cost.
 
-The prior and odometry factors are known inliers; every other factor is a loop the back end may reject. TLS keeps
-a loop exactly when its whitened error lies below the inlier threshold at the solution. It is reached from the
-loops that agree with their neighbours (`loop_consistency`): solved with those, every loop is judged at the
-solution, and solving and judging alternate until the kept loops no longer change; each round is one
-least-squares solve. Where too few loops have neighbours to agree with, graduated non-convexity (gtsam GNC) finds
-the TLS solution from the start instead, as it does for the Geman-McClure cost. When the solution bends the
-odometry beyond its covariances, TLS is also judged from the initial values (the odometry) and the solution of
-lower TLS cost stands: loops aliased by a repeated structure agree with each other, and can be grown into such a
-solution. Last, a loop whose removal would lower the cost of the rest beyond chance goes: a wrong loop can bend
-poses that long odometry holds loosely until its own error is small. See docs/back-end.md for the measurements
-behind the settings below.
+The prior and odometry factors are known inliers; every other factor is a loop the back end may reject. TLS keeps a
+loop exactly when its whitened error lies below the inlier threshold at the solution. It is reached from the loops
+that agree with their neighbours (`loop_consistency`): solved with those (from their chordal relaxation, `chordal`,
+not from the initial values), every loop is judged at the solution, and solving and judging alternate until the
+kept loops no longer change; each round is one least-squares solve. Where too few loops have neighbours to agree
+with, graduated non-convexity (gtsam GNC) finds the TLS solution from the start instead, as it does for the
+Geman-McClure cost. When the solution bends the odometry beyond its covariances, TLS is also judged from the
+initial values (the odometry) and the solution of lower TLS cost stands: loops aliased by a repeated structure
+agree with each other, and can be grown into such a solution. Last, a loop whose removal would lower the cost of
+the rest beyond chance goes: a wrong loop can bend poses that long odometry holds loosely until its own error is
+small. See docs/back-end.md for the measurements behind the settings below.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import gtsam
 import numpy as np
 from scipy.stats import chi2
 
+from sandro_slam.chordal import chordal_values
 from sandro_slam.config import GraphConfig
 from sandro_slam.covariance import FactorCovariances
 from sandro_slam.loop_consistency import supported_loops
@@ -43,6 +44,8 @@ SEED_ADMISSION_FACTOR = 1.5  # on the inlier threshold, of the innovation test a
 # poses where the seed loops are sparse are still far from where all loops put them
 ADMISSION_ROUNDS = 2  # innovation tests, each followed by TLS from the loops it admits
 MAX_TLS_ROUNDS = 10  # solve-and-judge rounds (they end when the kept loops no longer change)
+SCALED_TLS_ROUNDS = 2  # of the scaled run: at the tighter thresholds each round peels more of the real loops'
+# heavy tail, which the readmission then restores; outliers the first run let pass go in the first round
 MAX_REMOVAL_ROUNDS = 3  # removal tests after the growth, each followed by TLS without the loops it removes
 REMOVAL_SIGMAS = 3.0  # a loop is removed only when its removal cost drop also lies this many robust standard
 # deviations (in log10) above the kept loops' median drop: real loops of graphs whose errors are heavy-tailed
@@ -100,7 +103,7 @@ def robust_optimize(
         scale = variance_factor(graph, values, weights, known_inliers)
         if scale < 1.0:  # 1: too few loops to tell; above 1 the stated covariances are not too loose
             if seeded is not None:  # TLS at the tighter thresholds from the first run's loops
-                scaled = _truncated(graph, values, weights, known_inliers, thresholds * scale)
+                scaled = _truncated(graph, values, weights, known_inliers, thresholds * scale, SCALED_TLS_ROUNDS)
             else:
                 scaled = _gnc(graph, initial, known_inliers, config, 0.5 * thresholds[0] * scale)
             scaled_weights = readmitted(graph, *scaled, known_inliers)
@@ -224,14 +227,33 @@ def _seeded(
         weights = np.ones(graph.size())
         weights[loops] = 0.0
         weights[seed] = 1.0
-        values = refined(graph, initial, weights)  # to convergence: from poor initial values poses still move
-        # far while the cost barely changes
+        values = _solved_from_scratch(graph, initial, weights)
         errors = np.array([2.0 * graph.at(int(i)).error(values) for i in seed])
         misfit = (errors > np.array([threshold_of[int(i)] for i in seed])) & (errors > _tail_limit(errors))
         if not misfit.any():
             return values, weights
         seed = seed[~misfit]
     return None
+
+
+def _solved_from_scratch(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, weights: np.ndarray) -> gtsam.Values:
+    """LM to convergence on the factors of weight >= 0.5, started from their chordal relaxation (`chordal_values`)
+    rather than `initial`: from composed odometry LM can stop in a local minimum or creep for hundreds of
+    iterations. `initial` is the start when the relaxation does not apply or its solution costs more than
+    `initial` already does (then the lower of the two solutions)."""
+    kept = _kept(graph, weights)
+    start = chordal_values(kept, initial)
+    if start is None:
+        return refined(graph, initial, weights)
+    rest = gtsam.Values(initial)  # poses the kept factors do not touch stay where they were
+    for key in start.keys():
+        rest.erase(key)
+    start.insert(rest)
+    values = refined(graph, start, weights)
+    if kept.error(values) <= kept.error(initial):
+        return values
+    other = refined(graph, initial, weights)
+    return values if kept.error(values) <= kept.error(other) else other
 
 
 def _admitted(
@@ -320,14 +342,16 @@ def _truncated(
     candidates: np.ndarray,
     known_inliers: list[int],
     thresholds: np.ndarray,
+    max_rounds: int = MAX_TLS_ROUNDS,
 ) -> tuple[gtsam.Values, np.ndarray]:
     """TLS among the `candidates` (weight 1) from `values`: keep those whose squared whitened error is within
     their `thresholds` (per loop, in the order of `_loop_indices`), solve with them, judge the candidates again,
-    until the kept loops no longer change. Returns the solution and its 0/1 weights."""
+    until the kept loops no longer change or after `max_rounds` solves. Returns the solution and its 0/1
+    weights."""
     loops = _loop_indices(graph.size(), known_inliers)
     mine = candidates[loops] >= 0.5
     weights = candidates.copy()
-    for _ in range(MAX_TLS_ROUNDS):
+    for _ in range(max_rounds):
         errors = np.array([2.0 * graph.at(int(i)).error(values) for i in loops])
         judged = weights.copy()
         judged[loops] = ((errors <= thresholds) & mine).astype(float)

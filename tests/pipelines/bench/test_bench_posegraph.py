@@ -7,7 +7,14 @@ import gtsam
 import numpy as np
 import pytest
 
-from pipelines.bench.posegraph import CHAIN_PRIOR_SIGMA, RESULT_FIELDS, inject_outliers, load_problem, odometry_initial
+from pipelines.bench.posegraph import (
+    CHAIN_PRIOR_SIGMA,
+    RESULT_FIELDS,
+    inject_outliers,
+    load_problem,
+    odometry_initial,
+    reference,
+)
 from pipelines.cli.bench import main
 
 LAP = 30  # poses per lap of the circle
@@ -101,6 +108,20 @@ def test_quick_run_writes_outputs_and_gnc_rejects_the_injected_loops(data, tmp_p
         assert (out / plot).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert all(float(row["time_x_ref"]) > 0 for row in rows)
     assert graph in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("dim", [3, 2])
+def test_the_reference_starts_from_the_chordal_relaxation_where_the_file_holds_identity_vertices(tmp_path, dim):
+    path = tmp_path / "identity.g2o"
+    _write_g2o(path, dim)
+    identity = " 0 0 0 0 0 0 1" if dim == 3 else " 0 0 0"
+    lines = [" ".join(line.split()[:2]) + identity if line.startswith("VERTEX") else line
+             for line in path.read_text().splitlines()]  # fmt: skip
+    path.write_text("\n".join(lines) + "\n")
+    ref, elapsed, details = reference(load_problem(path))
+    assert details["start"] == "chordal" and elapsed == details["time_chordal_s"]
+    assert ref.cost == details["cost_chordal"] < 0.01 * details["cost_file"]  # LM from identity: a local minimum
+    assert ref.variance_factor < 1.0  # the measurements carry half the written noise
 
 
 def test_injected_loops_are_seeded_and_skip_neighbours(data):
