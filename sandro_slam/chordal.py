@@ -13,6 +13,8 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from sandro_slam.factors import gaussian_noise
+
 _POSE_FACTORS = {
     gtsam.BetweenFactorPose2: False,
     gtsam.PriorFactorPose2: False,
@@ -60,7 +62,7 @@ def _anchored(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, is3d: bo
         if not isinstance(factor, prior_type):
             anchored.add(factor)
             continue
-        logdet = np.linalg.slogdet(factor.noiseModel().information())[1]
+        logdet = np.linalg.slogdet(gaussian_noise(factor).information())[1]
         if logdet > best:
             tightest, best = factor, logdet
     if tightest is None:
@@ -76,8 +78,7 @@ def _diagonal(graph: gtsam.NonlinearFactorGraph) -> gtsam.NonlinearFactorGraph:
     out = gtsam.NonlinearFactorGraph()
     for i in range(graph.size()):
         factor = graph.at(i)
-        R = factor.noiseModel().R()
-        sigmas = gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(np.diag(np.linalg.inv(R.T @ R))))
+        sigmas = gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(np.diag(gaussian_noise(factor).covariance())))
         if isinstance(factor, gtsam.BetweenFactorPose2):
             out.add(gtsam.BetweenFactorPose2(factor.keys()[0], factor.keys()[1], factor.measured(), sigmas))
         else:
