@@ -5,7 +5,7 @@ far, and creeps along the flat valleys of graphs that long odometry holds loosel
 the optimum in a few iterations (Carlone et al., "Initialization techniques for 3D SLAM", ICRA 2015). 3D: gtsam's
 InitializePose3 (chordal rotations, then the translations' linear least squares); 2D: gtsam's LAGO, which takes
 diagonal noise models only, so it gets each factor's covariance diagonal (the start only, not the solution), and
-its spanning tree from the graph rather than from consecutive keys (odometry with gaps).
+its spanning tree along consecutive keys where they are all joined, else from the graph (odometry with gaps).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def chordal_values(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values) -> 
         if is3d:
             values = gtsam.InitializePose3.initialize(anchored)
         else:
-            values = gtsam.lago.initialize(_diagonal(anchored), useOdometricPath=False)
+            values = gtsam.lago.initialize(_diagonal(anchored), useOdometricPath=_has_odometric_path(graph))
     except (RuntimeError, IndexError):  # gtsam: an indeterminate system, or LAGO's spanning tree misses a pose
         return None
     keys = set(graph.keyVector())
@@ -48,6 +48,14 @@ def chordal_values(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values) -> 
     if not np.isfinite(graph.error(out)):
         return None
     return out
+
+
+def _has_odometric_path(graph: gtsam.NonlinearFactorGraph) -> bool:
+    """Whether a between factor joins every key to the next (keys consecutive integers): LAGO's spanning tree is
+    then that path, which it finds in linear time (its general search takes seconds on 10k poses)."""
+    keys = sorted(graph.keyVector())
+    steps = {tuple(sorted(graph.at(i).keys())) for i in range(graph.size()) if graph.at(i).size() == 2}
+    return all((a, a + 1) in steps for a in keys[:-1]) if keys else False
 
 
 def _anchored(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, is3d: bool) -> gtsam.NonlinearFactorGraph:
