@@ -6,15 +6,20 @@ the optimum in a few iterations (Carlone et al., "Initialization techniques for 
 InitializePose3 (chordal rotations, then the translations' linear least squares); 2D: gtsam's LAGO, which takes
 diagonal noise models only, so it gets each factor's covariance diagonal (the start only, not the solution), and
 its spanning tree along consecutive keys where they are all joined, else from the graph (odometry with gaps).
+Each connected part of the graph is relaxed on its own and placed by its own prior; where the covariances leave a
+rotation free, with every measurement weighed alike.
 """
 
 from __future__ import annotations
 
 import gtsam
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse import csgraph
 
 from sandro_slam.factors import gaussian_noise
 
+ANCHOR_SIGMA = 1e-3  # [rad], [m] of the prior that fixes a part's frame at the origin
 _POSE_FACTORS = {
     gtsam.BetweenFactorPose2: False,
     gtsam.PriorFactorPose2: False,
@@ -24,30 +29,46 @@ _POSE_FACTORS = {
 
 
 def chordal_values(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values) -> gtsam.Values | None:
-    """Poses of every key of `graph` from its measurements alone, in the frame of its tightest prior (or, without
-    one, of the first key's pose in `initial`). None when `graph` holds factors other than Pose2 or Pose3 between and
-    prior factors, mixes 2D and 3D, or does not determine every pose (a part that no factor connects)."""
+    """Poses of every key of `graph` from its measurements alone. Each connected part (sessions, or odometry chains
+    that no factor joins) in the frame of its tightest prior, or, without one, of its smallest key's pose in
+    `initial`. None when `graph` holds factors other than Pose2 or Pose3 between and prior factors, mixes 2D and 3D,
+    or a part's relaxation is indeterminate."""
     kinds = {_POSE_FACTORS.get(type(graph.at(i))) for i in range(graph.size())}
     if len(kinds) != 1 or None in kinds:
         return None
     is3d = kinds.pop()
-    anchored = _anchored(graph, initial, is3d)
-    try:
-        if is3d:
-            values = gtsam.InitializePose3.initialize(anchored)
-        else:
-            values = gtsam.lago.initialize(_diagonal(anchored), useOdometricPath=_has_odometric_path(graph))
-    except (RuntimeError, IndexError):  # gtsam: an indeterminate system, or LAGO's spanning tree misses a pose
-        return None
-    keys = set(graph.keyVector())
-    if not keys <= set(values.keys()):
-        return None
     out = gtsam.Values()
-    for key in keys:
-        out.insert(key, values.atPose3(key) if is3d else values.atPose2(key))
+    for part in _parts(graph):
+        anchored, anchor, pose = _anchored(part, initial, is3d)
+        values = _relaxed(anchored, is3d)
+        if values is None:  # covariances that leave a rotation free (a planar graph's roll and pitch, say)
+            values = _relaxed(_reweighted(anchored, is3d, isotropic=True), is3d)
+        if values is None:
+            return None
+        keys = set(part.keyVector())
+        if not keys <= set(values.keys()):
+            return None
+        at = values.atPose3 if is3d else values.atPose2
+        moved = pose.compose(at(anchor).inverse())  # the anchor onto its pose
+        for key in keys:
+            out.insert(key, moved.compose(at(key)))
     if not np.isfinite(graph.error(out)):
         return None
     return out
+
+
+def _parts(graph: gtsam.NonlinearFactorGraph) -> list[gtsam.NonlinearFactorGraph]:
+    """The connected parts of `graph`: the factors of each set of keys that its factors join."""
+    keys = sorted(graph.keyVector())
+    index = {key: n for n, key in enumerate(keys)}
+    pairs = [[index[k] for k in graph.at(i).keys()] for i in range(graph.size()) if graph.at(i).size() == 2]
+    rows, cols = np.array(pairs, dtype=int).reshape(-1, 2).T
+    joined = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(keys), len(keys)))
+    count, label = csgraph.connected_components(joined, directed=False)
+    parts = [gtsam.NonlinearFactorGraph() for _ in range(count)]
+    for i in range(graph.size()):
+        parts[label[index[graph.at(i).keys()[0]]]].add(graph.at(i))
+    return parts
 
 
 def _has_odometric_path(graph: gtsam.NonlinearFactorGraph) -> bool:
@@ -58,10 +79,14 @@ def _has_odometric_path(graph: gtsam.NonlinearFactorGraph) -> bool:
     return all((a, a + 1) in steps for a in keys[:-1]) if keys else False
 
 
-def _anchored(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, is3d: bool) -> gtsam.NonlinearFactorGraph:
-    """The between factors of `graph` and one prior: its tightest (largest information determinant), or, when it
-    has none, one on its smallest key at that key's pose in `initial`. Loose priors (on the first pose of a
-    further odometry chain, say) make the relaxation's linear systems indeterminate, and one fixes its frame."""
+def _anchored(
+    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, is3d: bool
+) -> tuple[gtsam.NonlinearFactorGraph, int, gtsam.Pose2 | gtsam.Pose3]:
+    """The between factors of `graph` with a tight prior at the origin on one key, the key and where it belongs: the
+    pose of `graph`'s tightest prior (largest information determinant), or, when it has none, its smallest key's
+    pose in `initial`. gtsam's relaxations solve in the frame of an origin (InitializePose3 finds no solution when a
+    prior sits elsewhere), and loose priors (on the first pose of a further odometry chain, say) make their linear
+    systems indeterminate."""
     prior_type = gtsam.PriorFactorPose3 if is3d else gtsam.PriorFactorPose2
     anchored = gtsam.NonlinearFactorGraph()
     tightest, best = None, -np.inf
@@ -76,19 +101,37 @@ def _anchored(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, is3d: bo
     if tightest is None:
         key = min(graph.keyVector())
         pose = initial.atPose3(key) if is3d else initial.atPose2(key)
-        tightest = prior_type(key, pose, gtsam.noiseModel.Isotropic.Sigma(6 if is3d else 3, 1e-3))
-    anchored.add(tightest)
-    return anchored
+    else:
+        key, pose = tightest.keys()[0], tightest.prior()
+    origin = gtsam.Pose3() if is3d else gtsam.Pose2()
+    anchored.add(prior_type(key, origin, gtsam.noiseModel.Isotropic.Sigma(6 if is3d else 3, ANCHOR_SIGMA)))
+    return anchored, key, pose
 
 
-def _diagonal(graph: gtsam.NonlinearFactorGraph) -> gtsam.NonlinearFactorGraph:
-    """The 2D `graph` with each factor's noise model replaced by its covariance's diagonal (LAGO's input)."""
+def _relaxed(graph: gtsam.NonlinearFactorGraph, is3d: bool) -> gtsam.Values | None:
+    """gtsam's relaxation of an anchored `graph` (`_anchored`); None where it finds the system indeterminate."""
+    try:
+        if is3d:
+            return gtsam.InitializePose3.initialize(graph)
+        return gtsam.lago.initialize(_reweighted(graph, is3d), useOdometricPath=_has_odometric_path(graph))
+    except (RuntimeError, IndexError):  # gtsam: an indeterminate system, or LAGO's spanning tree misses a pose
+        return None
+
+
+def _reweighted(graph: gtsam.NonlinearFactorGraph, is3d: bool, isotropic: bool = False) -> gtsam.NonlinearFactorGraph:
+    """`graph` with each factor's noise model replaced by its covariance's diagonal (LAGO's input), or when
+    `isotropic`, each between factor's by unit sigmas (a start that weighs every measurement alike)."""
+    between = gtsam.BetweenFactorPose3 if is3d else gtsam.BetweenFactorPose2
+    prior = gtsam.PriorFactorPose3 if is3d else gtsam.PriorFactorPose2
     out = gtsam.NonlinearFactorGraph()
     for i in range(graph.size()):
         factor = graph.at(i)
-        sigmas = gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(np.diag(gaussian_noise(factor).covariance())))
-        if isinstance(factor, gtsam.BetweenFactorPose2):
-            out.add(gtsam.BetweenFactorPose2(factor.keys()[0], factor.keys()[1], factor.measured(), sigmas))
+        if isotropic:
+            noise = gtsam.noiseModel.Isotropic.Sigma(6 if is3d else 3, 1.0)
         else:
-            out.add(gtsam.PriorFactorPose2(factor.keys()[0], factor.prior(), sigmas))
+            noise = gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(np.diag(gaussian_noise(factor).covariance())))
+        if isinstance(factor, between):
+            out.add(between(factor.keys()[0], factor.keys()[1], factor.measured(), noise))
+        else:
+            out.add(factor if isotropic else prior(factor.keys()[0], factor.prior(), noise))
     return out

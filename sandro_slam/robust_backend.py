@@ -39,6 +39,8 @@ REFINE_RELATIVE_TOL = 1e-10  # of the final LM on the kept factors: on graphs wi
 MIN_LOOPS_FOR_SCALE = 10  # kept loops needed to estimate their variance factor
 MIN_KEPT_SHARE = 0.8  # noise_scale 'estimated': of the first run's loops, the scaled run must keep more than this
 MIN_FIT_GAIN = 2.0  # and fit those it keeps this much better (median squared error) than the first run
+MIN_TIGHT_FACTOR = 2.0  # noise_scale 'estimated': the seed loops' variance factor above which the covariances are
+# taken as too tight, and every inlier threshold grows by it (`_tightness`; below it they stand as given)
 MIN_SEED_LOOPS = 10  # loops agreeing with their neighbours needed to start TLS from them rather than run GNC
 SEED_ADMISSION_FACTOR = 1.5  # on the inlier threshold, of the innovation test against the seed solution: the
 # poses where the seed loops are sparse are still far from where all loops put them
@@ -89,6 +91,10 @@ def robust_optimize(
     dims = np.array([graph.at(int(i)).dim() for i in loops])
     thresholds = chi2.ppf(config.inlier_probability, dims)
     seeded = _seeded(graph, initial, known_inliers, seed, thresholds)
+    tight = 1.0
+    if seeded is not None and config.noise_scale == "estimated":
+        tight = _tightness(graph, *seeded, known_inliers)
+        thresholds = thresholds * tight
     if seeded is not None:
         values, weights = _grown(graph, *seeded, known_inliers, thresholds, config.noise_scale == "estimated")
     else:
@@ -97,7 +103,7 @@ def robust_optimize(
         judged = _truncated(graph, initial, np.ones(graph.size()), known_inliers, thresholds)
         values, weights = _lower_cost(graph, (values, weights), judged, known_inliers, thresholds)
     if seeded is not None:
-        values, weights = _pruned(graph, values, weights, known_inliers, thresholds, config.inlier_probability)
+        values, weights = _pruned(graph, values, weights, known_inliers, thresholds, config.inlier_probability, tight)
     values = refined(graph, values, weights)
     if config.noise_scale == "estimated" and len(set(dims)) == 1:
         scale = variance_factor(graph, values, weights, known_inliers)
@@ -142,8 +148,10 @@ def _pruned(
     known_inliers: list[int],
     thresholds: np.ndarray,
     probability: float,
+    scale: float = 1.0,
 ) -> tuple[gtsam.Values, np.ndarray]:
-    """The removal test on the kept loops of the solution (`values`, `weights`).
+    """The removal test on the kept loops of the solution (`values`, `weights`), with the covariances taken
+    `scale` times as large.
 
     Where the poses are held loosely (long odometry, few loops), a wrong loop bends them until its own error is
     far below its threshold, and TLS judged on errors keeps it. What it costs the rest shows in the cost drop of
@@ -170,7 +178,7 @@ def _pruned(
         for n in np.flatnonzero(mine):
             b, M = covariances.projected(graph.at(int(loops[n])), values)
             drops[n] = float(b @ np.linalg.solve(np.eye(len(b)) - M, b))
-        limits = chi2.isf((1.0 - probability) / mine.sum(), dims)
+        limits = scale * chi2.isf((1.0 - probability) / mine.sum(), dims)
         excess = np.where(drops > _tail_limit(drops[mine], REMOVAL_SIGMAS), drops / limits - 1.0, 0.0)
         if excess.max() <= 0.0:
             break
@@ -178,6 +186,21 @@ def _pruned(
         values = refined(graph, values, candidates, relative_tol=SEED_RELATIVE_TOL)
         values, weights = _truncated(graph, values, candidates, known_inliers, thresholds)
     return values, weights
+
+
+def _tightness(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, weights: np.ndarray, known_inliers: list[int]
+) -> float:
+    """How many times the covariances understate the noise, from the seed solution (`values`, `weights`): when the
+    seed loops' median squared whitened error over the chi-square median (`variance_factor`) exceeds
+    `MIN_TIGHT_FACTOR`, that ratio over the mean share of a factor's error a least-squares fit leaves (redundancy
+    over measurement dimensions); else 1. The median, not the seed solution's cost: a wrong seed inflates that."""
+    ratio = variance_factor(graph, values, weights, known_inliers)
+    if ratio <= MIN_TIGHT_FACTOR:
+        return 1.0
+    kept = _kept(graph, weights)
+    measured = sum(kept.at(i).dim() for i in range(kept.size()))
+    return ratio * measured / max(measured - values.dim(), 1)
 
 
 def _strained(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, known_inliers: list[int]) -> bool:

@@ -97,17 +97,28 @@ def test_robust_back_end_from_identity_values_keeps_the_real_loops(seed):
 
 
 @pytest.mark.parametrize("shape", ["torus", "circle"])
-def test_graphs_with_other_factors_or_unconnected_poses_have_no_relaxation(shape):
+def test_graphs_with_other_factors_have_no_relaxation(shape):
     poses = _torus_poses(2, 20) if shape == "torus" else _circle_poses(2, 20)
     graph, _, _, identity = _graph(poses, 20, n_wrong=0, seed=0, rotation_sigma=0.05)
     with_point = gtsam.NonlinearFactorGraph(graph)
     with_point.add(gtsam.PriorFactorPoint3(1000, gtsam.Point3(0, 0, 0), gtsam.noiseModel.Isotropic.Sigma(3, 1.0)))
     assert chordal_values(with_point, identity) is None
+
+
+@pytest.mark.parametrize("shape", ["torus", "circle"])
+def test_parts_no_factor_joins_each_have_a_relaxation_in_the_frame_of_their_first_pose(shape):
+    poses = _torus_poses(2, 20) if shape == "torus" else _circle_poses(2, 20)
+    graph, _, _, identity = _graph(poses, 20, n_wrong=0, seed=0, rotation_sigma=0.05)
     two_pieces = gtsam.NonlinearFactorGraph()  # the odometry without the prior and the step from pose 19 to 20
     for i in range(1, 40):
         if i != 20:
             two_pieces.add(graph.at(i))
-    assert chordal_values(two_pieces, identity) is None
+    start = chordal_values(two_pieces, identity)
+    assert start is not None and set(start.keys()) == set(identity.keys())
+    assert two_pieces.error(start) == pytest.approx(0.0, abs=1e-6)  # chains alone: every step as measured
+    for first in (0, 20):
+        pose = start.atPose3(first) if shape == "torus" else start.atPose2(first)
+        assert np.allclose(pose.matrix(), np.eye(len(pose.matrix())), atol=1e-2)
 
 
 def test_odometry_with_a_gap_that_loops_bridge_has_a_relaxation():
@@ -123,3 +134,35 @@ def test_odometry_with_a_gap_that_loops_bridge_has_a_relaxation():
     for k, pose in enumerate(poses):
         truth.insert(k, pose)
     assert gapped.error(_lm(gapped, start)) == pytest.approx(gapped.error(_lm(gapped, truth)), rel=1e-6)
+
+
+@pytest.mark.parametrize("shape", ["torus", "circle"])
+def test_the_relaxation_lies_in_the_frame_of_the_tightest_prior(shape):
+    poses = _torus_poses(1, 3) if shape == "torus" else _circle_poses(1, 3)
+    graph, _, _, identity = _graph(poses, 3, n_wrong=0, seed=0, rotation_sigma=0.05)  # a tree: it fits exactly
+    pose_type = type(poses[0])
+    moved = pose_type.Expmap(np.array([0.1, 0.2, 0.3, 9.7, 5.3, 1.0][: 6 if shape == "torus" else 3]))
+    loose = gtsam.NonlinearFactorGraph(graph)
+    prior = gtsam.PriorFactorPose3 if shape == "torus" else gtsam.PriorFactorPose2
+    loose.add(prior(1, moved, gtsam.noiseModel.Isotropic.Sigma(len(moved.logmap(moved)), 1e3)))
+    start = chordal_values(loose, identity)
+    assert start is not None
+    assert graph.error(start) == pytest.approx(0.0, abs=1e-9)
+    first = start.atPose3(0) if shape == "torus" else start.atPose2(0)
+    assert np.allclose(first.matrix(), poses[0].matrix(), atol=1e-6)
+
+
+def test_a_planar_graph_whose_covariances_leave_roll_and_pitch_free_has_a_relaxation():
+    circle = _circle_poses(2, 20)
+    poses = [gtsam.Pose3(gtsam.Rot3.Rz(p.theta()), [p.x(), p.y(), 0.0]) for p in circle]
+    noise = gtsam.noiseModel.Diagonal.Sigmas([1e3, 1e3, 0.05, 0.1, 0.1, 0.1])  # roll and pitch: no information
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPose3(0, poses[0], gtsam.noiseModel.Isotropic.Sigma(6, 1e-3)))
+    for a, b in [(k, k + 1) for k in range(39)] + [(k - 20, k) for k in range(20, 40)]:
+        graph.add(gtsam.BetweenFactorPose3(a, b, poses[a].between(poses[b]), noise))
+    identity = gtsam.Values()
+    for k in range(40):
+        identity.insert(k, gtsam.Pose3())
+    start = chordal_values(graph, identity)
+    assert start is not None
+    assert graph.error(start) == pytest.approx(0.0, abs=1e-6)

@@ -253,6 +253,50 @@ def test_estimated_noise_scale_rejects_wrong_loops_that_loose_covariances_let_pa
     assert max(errors) < 0.1  # 1-1.5 m with the given covariances
 
 
+def _tight_graph(seed: int):
+    """The circle of `_loose_graph` whose odometry and true loops state an eighth of the standard deviation of their
+    real noise (sphere_bignoise's covariances are tighter still), plus 6 wrong loops 5 m and 0.3 rad off."""
+    rng = np.random.default_rng(seed)
+    truth, _ = _chain(40, rng, drift=0.0)
+    real = np.array([0.01] * 3 + [0.05] * 3)  # [rad] and [m]
+    noise = gtsam.noiseModel.Diagonal.Sigmas(real / 8.0)
+
+    def measured(a: int, b: int, offset: np.ndarray | None = None) -> gtsam.Pose3:
+        exact = gtsam.Pose3(np.linalg.inv(truth[a]) @ truth[b])
+        return exact.compose(gtsam.Pose3.Expmap(rng.normal(scale=real) if offset is None else offset))
+
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(truth[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-3)))
+    initial = gtsam.Values()
+    initial.insert(0, gtsam.Pose3(truth[0]))
+    for i in range(1, 40):
+        step = measured(i - 1, i)
+        graph.add(gtsam.BetweenFactorPose3(i - 1, i, step, noise))
+        initial.insert(i, initial.atPose3(i - 1).compose(step))
+    known = list(range(graph.size()))
+    for a, b in LOOSE_LOOPS:
+        graph.add(gtsam.BetweenFactorPose3(a, b, measured(a, b), noise))
+    wrong = []
+    for _ in range(6):
+        a, b = (int(i) for i in sorted(rng.choice(40, 2, replace=False)))
+        direction = rng.normal(size=3)
+        wrong.append(graph.size())
+        offset = np.concatenate([[0.0, 0.0, 0.3], direction / np.linalg.norm(direction) * 5.0])
+        graph.add(gtsam.BetweenFactorPose3(a, b, measured(a, b, offset), noise))
+    return graph, initial, known, wrong
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_estimated_noise_scale_keeps_real_loops_whose_covariances_are_too_tight(seed):
+    graph, initial, known, wrong = _tight_graph(seed)
+    real = [i for i in range(len(known), graph.size()) if i not in wrong]
+    _, given = robust_optimize(graph, initial, known, GraphConfig(robust="gnc_tls", noise_scale="given"))
+    assert np.sum(given[real] >= 0.5) < 0.5 * len(real)  # 64x their stated variance: beyond the thresholds
+    _, weights = robust_optimize(graph, initial, known, GraphConfig(robust="gnc_tls", noise_scale="estimated"))
+    assert np.sum(weights[real] >= 0.5) >= 0.95 * len(real)
+    assert np.all(weights[wrong] < 0.5)
+
+
 def test_readmitted_gives_back_loops_within_the_kept_loops_spread_only():
     graph, initial, known, wrong, _ = _loose_graph(tail=5.0)
     weights = np.ones(graph.size())
