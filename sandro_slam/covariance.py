@@ -21,13 +21,16 @@ PATTERN_VALUE = 1e-30  # x the median diagonal: stored on every block a factor t
 
 
 class FactorCovariances:
-    """Covariances of `graph`'s variables at `values` (from the factors' whitened Jacobians).
+    """Covariances of `graph`'s variables at `values` (from the factors' whitened Jacobians). `floor` adds that
+    many times the information matrix's median diagonal to its diagonal: a weak prior on every variable, for
+    graphs whose covariances leave directions numerically free.
 
     Raises:
-        ValueError: the information matrix is singular (a variable no factor determines).
+        ValueError: the information matrix is singular (a variable no factor determines) or, numerically, not
+            positive definite.
     """
 
-    def __init__(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values):
+    def __init__(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, floor: float = 0.0):
         zeros = values.zeroVectors()
         self._offset: dict[int, int] = {}
         self._dim: dict[int, int] = {}
@@ -60,6 +63,12 @@ class FactorCovariances:
         touched = np.concatenate(block_rows), np.concatenate(block_cols)
         value = PATTERN_VALUE * float(np.median(information.diagonal()))
         information = (information + sp.csc_matrix((np.full(len(touched[0]), value), touched), (size, size))).tocsc()
+        if floor > 0.0:  # on the diagonal, and every variable's own block on the pattern
+            own = [np.arange(self._offset[key], self._offset[key] + self._dim[key]) for key in self._offset]
+            r = np.concatenate([np.repeat(c, len(c)) for c in own])
+            q = np.concatenate([np.tile(c, len(c)) for c in own])
+            entries = np.where(r == q, floor * value / PATTERN_VALUE, value)
+            information = (information + sp.csc_matrix((entries, (r, q)), (size, size))).tocsc()
         try:
             lu = spl.splu(information, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                           options={"SymmetricMode": True})  # fmt: skip

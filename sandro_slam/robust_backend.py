@@ -10,7 +10,8 @@ Geman-McClure cost. When the solution bends the odometry beyond its covariances,
 initial values (the odometry) and the solution of lower TLS cost stands: loops aliased by a repeated structure
 agree with each other, and can be grown into such a solution. Last, a loop whose removal would lower the cost of
 the rest beyond chance goes: a wrong loop can bend poses that long odometry holds loosely until its own error is
-small. See docs/back-end.md for the measurements behind the settings below.
+small. Where the seed loops fit far worse than their covariances say, every threshold grows with them. See
+docs/back-end.md for the measurements behind the settings below.
 """
 
 from __future__ import annotations
@@ -44,6 +45,8 @@ MIN_TIGHT_FACTOR = 2.0  # noise_scale 'estimated': the seed loops' variance fact
 MIN_SEED_LOOPS = 10  # loops agreeing with their neighbours needed to start TLS from them rather than run GNC
 SEED_ADMISSION_FACTOR = 1.5  # on the inlier threshold, of the innovation test against the seed solution: the
 # poses where the seed loops are sparse are still far from where all loops put them
+ADMISSION_INFORMATION_FLOOR = 1e-8  # x the median information diagonal, on every pose, where the seed graph's
+# information matrix is numerically not positive definite (SE-Sync's cubicle: roll and pitch sigmas of 1e3 rad)
 ADMISSION_ROUNDS = 2  # innovation tests, each followed by TLS from the loops it admits
 MAX_TLS_ROUNDS = 10  # solve-and-judge rounds (they end when the kept loops no longer change)
 SCALED_TLS_ROUNDS = 2  # of the scaled run: at the tighter thresholds each round peels more of the real loops'
@@ -74,7 +77,8 @@ def robust_optimize(
     loops whose removal would lower the others' cost beyond chance go (`_pruned`). gnc_gm: always
     GncLMOptimizer with the Geman-McClure cost. Then Levenberg-Marquardt to convergence (`REFINE_RELATIVE_TOL`)
     on the factors kept.
-    With `noise_scale: estimated`, for graphs whose covariances are not to scale: when the loops the first run
+    With `noise_scale: estimated`, for graphs whose covariances are not to scale: when the seed loops fit far worse
+    than their covariances say, every threshold grows by how much (`_tightness`); when the loops the first run
     kept fit better than their covariances say (`variance_factor` below 1), a second run takes the thresholds
     times that factor (TLS from the first run's loops, or GNC from `initial`), loops it rejected that fit as
     well as the heavy tail of those it kept come back (`readmitted`), and its result replaces the first when
@@ -99,7 +103,7 @@ def robust_optimize(
         values, weights = _grown(graph, *seeded, known_inliers, thresholds, config.noise_scale == "estimated")
     else:
         values, weights = _gnc(graph, initial, known_inliers, config, 0.5 * thresholds[0])
-    if config.robust == "gnc_tls" and _strained(graph, values, known_inliers):
+    if config.robust == "gnc_tls" and _strained(graph, values, known_inliers, tight):
         judged = _truncated(graph, initial, np.ones(graph.size()), known_inliers, thresholds)
         values, weights = _lower_cost(graph, (values, weights), judged, known_inliers, thresholds)
     if seeded is not None:
@@ -203,12 +207,14 @@ def _tightness(
     return ratio * measured / max(measured - values.dim(), 1)
 
 
-def _strained(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, known_inliers: list[int]) -> bool:
-    """Whether the known inliers (prior, odometry) fit `values` worse than their covariances say: their squared
-    whitened errors sum to more than their dimensions. At a least-squares optimum they sum to less (the fit
-    absorbs part of their noise); above it, the loops kept bend the odometry."""
+def _strained(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, known_inliers: list[int], scale: float = 1.0
+) -> bool:
+    """Whether the known inliers (prior, odometry) fit `values` worse than their covariances (times `scale`) say:
+    their squared whitened errors sum to more than `scale` times their dimensions. At a least-squares optimum they
+    sum to less (the fit absorbs part of their noise); above it, the loops kept bend the odometry."""
     squared = sum(2.0 * graph.at(i).error(values) for i in known_inliers)
-    return squared > sum(graph.at(i).dim() for i in known_inliers)
+    return squared > scale * sum(graph.at(i).dim() for i in known_inliers)
 
 
 def _lower_cost(
@@ -307,8 +313,11 @@ def _admitted(
     kept = _kept(graph, weights)
     try:
         covariances = FactorCovariances(kept, values)
-    except ValueError:  # poses that only loops outside the seed hold: no covariance to test against
-        return values, weights
+    except ValueError:  # covariances that leave directions free (roll and pitch of planar odometry, chains held
+        try:  # by weak priors): bounded by a weak prior on every pose
+            covariances = FactorCovariances(kept, values, floor=ADMISSION_INFORMATION_FLOOR)
+        except ValueError:  # poses that only loops outside the seed hold: no covariance to test against
+            return values, weights
     loop_scale, pose_scale = 1.0, 1.0
     if scaled:
         seed = loops[weights[loops] >= 0.5]

@@ -80,3 +80,20 @@ def test_undetermined_variable_is_refused():
     values.insert(99, gtsam.Pose2())  # no factor holds it
     with pytest.raises(ValueError):
         FactorCovariances(graph, values)
+
+
+def test_a_floor_bounds_the_covariance_of_directions_no_factor_determines():
+    graph, values = _loop_graph(False, poses=10, loops=0)
+    values.insert(99, gtsam.Pose2())  # no factor holds it
+    floored = FactorCovariances(graph, values, floor=1e-10)
+    information, _ = graph.linearize(values).hessian()
+    median = np.median(np.concatenate([np.diag(information), np.zeros(3)]))  # pose 99's diagonal: 0
+    np.testing.assert_allclose(floored.block(99, 99), np.eye(3) / (1e-10 * median), rtol=1e-6, atol=1e-6)
+    exact = FactorCovariances(graph, _without(values, 99))
+    np.testing.assert_allclose(floored.block(5, 5), exact.block(5, 5), rtol=1e-6)  # the rest barely moves
+
+
+def _without(values: gtsam.Values, key: int) -> gtsam.Values:
+    out = gtsam.Values(values)
+    out.erase(key)
+    return out
