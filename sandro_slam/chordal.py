@@ -73,7 +73,7 @@ def _parts(graph: gtsam.NonlinearFactorGraph) -> list[gtsam.NonlinearFactorGraph
 
 def _has_odometric_path(graph: gtsam.NonlinearFactorGraph) -> bool:
     """Whether a between factor joins every key to the next (keys consecutive integers): LAGO's spanning tree is
-    then that path, which it finds in linear time (its general search takes seconds on 10k poses)."""
+    then that path, found in linear time (its general search took 0.3-0.5 s on 3500-4500 poses)."""
     keys = sorted(graph.keyVector())
     steps = {tuple(sorted(graph.at(i).keys())) for i in range(graph.size()) if graph.at(i).size() == 2}
     return all((a, a + 1) in steps for a in keys[:-1]) if keys else False

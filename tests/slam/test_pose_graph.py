@@ -201,6 +201,20 @@ def test_a_loop_holds_only_when_the_estimate_already_satisfies_it():
 LOOSE_LOOPS = [(i, (i + 10) % 40) for i in range(40)] + [(i, i + 20) for i in range(20)]  # _loose_graph's true loops
 
 
+def _odometry_graph(truth: list[np.ndarray], measured, noise: gtsam.noiseModel.Base):
+    """A prior on the first pose of `truth` and an odometry factor `measured(i - 1, i)` to every next one; returns
+    (graph, the odometry composed from the first pose, the known-inlier indices)."""
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(truth[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-3)))
+    initial = gtsam.Values()
+    initial.insert(0, gtsam.Pose3(truth[0]))
+    for i in range(1, len(truth)):
+        step = measured(i - 1, i)
+        graph.add(gtsam.BetweenFactorPose3(i - 1, i, step, noise))
+        initial.insert(i, initial.atPose3(i - 1).compose(step))
+    return graph, initial, list(range(graph.size()))
+
+
 def _loose_graph(seed: int = 0, tail: float = 1.0, n_wrong: int = 6, biased_below: int = 0):
     """A circle of 40 poses whose odometry and 60 true loops (`LOOSE_LOOPS`) state 100x the standard deviation
     of their real noise (like parking-garage's), plus `n_wrong` wrong loops 2.5 m and a few degrees off: within
@@ -219,15 +233,7 @@ def _loose_graph(seed: int = 0, tail: float = 1.0, n_wrong: int = 6, biased_belo
         delta = rng.normal(scale=factor * stated / 100.0) if offset is None else offset
         return exact.compose(gtsam.Pose3.Expmap(delta + bias))
 
-    graph = gtsam.NonlinearFactorGraph()
-    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(truth[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-3)))
-    initial = gtsam.Values()
-    initial.insert(0, gtsam.Pose3(truth[0]))
-    for i in range(1, 40):
-        step = measured(i - 1, i)
-        graph.add(gtsam.BetweenFactorPose3(i - 1, i, step, noise))
-        initial.insert(i, initial.atPose3(i - 1).compose(step))
-    known = list(range(graph.size()))
+    graph, initial, known = _odometry_graph(truth, measured, noise)
     bias = np.array([0.0, 0.0, 0.05, 0.1, 0.0, 0.0])
     for n, (a, b) in enumerate(LOOSE_LOOPS):
         loop = measured(a, b, factor=tail if n % 10 == 0 else 1.0, bias=bias if a < biased_below else 0.0)
@@ -265,15 +271,7 @@ def _tight_graph(seed: int):
         exact = gtsam.Pose3(np.linalg.inv(truth[a]) @ truth[b])
         return exact.compose(gtsam.Pose3.Expmap(rng.normal(scale=real) if offset is None else offset))
 
-    graph = gtsam.NonlinearFactorGraph()
-    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(truth[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-3)))
-    initial = gtsam.Values()
-    initial.insert(0, gtsam.Pose3(truth[0]))
-    for i in range(1, 40):
-        step = measured(i - 1, i)
-        graph.add(gtsam.BetweenFactorPose3(i - 1, i, step, noise))
-        initial.insert(i, initial.atPose3(i - 1).compose(step))
-    known = list(range(graph.size()))
+    graph, initial, known = _odometry_graph(truth, measured, noise)
     for a, b in LOOSE_LOOPS:
         graph.add(gtsam.BetweenFactorPose3(a, b, measured(a, b), noise))
     wrong = []
