@@ -61,13 +61,14 @@ class FactorCovariances:
         J = sp.csc_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(row, size))
         information = (J.T @ J).tocsc()
         touched = np.concatenate(block_rows), np.concatenate(block_cols)
-        value = PATTERN_VALUE * float(np.median(information.diagonal()))
+        median = float(np.median(information.diagonal()))
+        value = PATTERN_VALUE * median
         information = (information + sp.csc_matrix((np.full(len(touched[0]), value), touched), (size, size))).tocsc()
         if floor > 0.0:  # on the diagonal, and every variable's own block on the pattern
             own = [np.arange(self._offset[key], self._offset[key] + self._dim[key]) for key in self._offset]
             r = np.concatenate([np.repeat(c, len(c)) for c in own])
             q = np.concatenate([np.tile(c, len(c)) for c in own])
-            entries = np.where(r == q, floor * value / PATTERN_VALUE, value)
+            entries = np.where(r == q, floor * median, value)
             information = (information + sp.csc_matrix((entries, (r, q)), (size, size))).tocsc()
         try:
             lu = spl.splu(information, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,

@@ -96,10 +96,10 @@ def robust_optimize(
     thresholds = chi2.ppf(config.inlier_probability, dims)
     seeded = _seeded(graph, initial, known_inliers, seed, thresholds)
     tight = 1.0
-    if seeded is not None and config.noise_scale == "estimated":
-        tight = _tightness(graph, *seeded, known_inliers)
-        thresholds = thresholds * tight
     if seeded is not None:
+        if config.noise_scale == "estimated":
+            tight = _tightness(graph, *seeded, known_inliers)
+            thresholds = thresholds * tight
         values, weights = _grown(graph, *seeded, known_inliers, thresholds, config.noise_scale == "estimated")
     else:
         values, weights = _gnc(graph, initial, known_inliers, config, 0.5 * thresholds[0])
@@ -202,9 +202,14 @@ def _tightness(
     ratio = variance_factor(graph, values, weights, known_inliers)
     if ratio <= MIN_TIGHT_FACTOR:
         return 1.0
-    kept = _kept(graph, weights)
-    measured = sum(kept.at(i).dim() for i in range(kept.size()))
-    return ratio * measured / max(measured - values.dim(), 1)
+    measured, redundancy = _dimensions(_kept(graph, weights), values)
+    return ratio * measured / max(redundancy, 1)
+
+
+def _dimensions(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> tuple[int, int]:
+    """(measurement dimensions of `graph`'s factors, their redundancy: those less the unknowns of `values`)."""
+    measured = sum(graph.at(i).dim() for i in range(graph.size()))
+    return measured, measured - values.dim()
 
 
 def _strained(
@@ -321,8 +326,7 @@ def _admitted(
     loop_scale, pose_scale = 1.0, 1.0
     if scaled:
         seed = loops[weights[loops] >= 0.5]
-        measured = sum(kept.at(i).dim() for i in range(kept.size()))
-        redundancy = measured - values.dim()
+        measured, redundancy = _dimensions(kept, values)
         if redundancy > 0:
             shrinkage = redundancy / measured  # mean share of a factor's error left after the fit
             ratio = float(np.median([_chi2_ratio(graph.at(int(i)), values) for i in seed]))
