@@ -51,7 +51,8 @@ ADMISSION_ROUNDS = 2  # innovation tests, each followed by TLS from the loops it
 MAX_TLS_ROUNDS = 10  # solve-and-judge rounds (they end when the kept loops no longer change)
 SCALED_TLS_ROUNDS = 2  # of the scaled run: at the tighter thresholds each round peels more of the real loops'
 # heavy tail, which the readmission then restores; outliers the first run let pass go in the first round
-MAX_REMOVAL_ROUNDS = 3  # removal tests after the growth, each followed by TLS without the loops it removes
+MAX_REMOVAL_ROUNDS = 10  # removal tests after the growth, each followed by TLS without the loops it removes; a
+# bound only: they end when no kept loop exceeds both bounds of the test (SE-Sync's ais2klinik takes 6)
 REMOVAL_SIGMAS = 3.0  # a loop is removed only when its removal cost drop also lies this many robust standard
 # deviations (in log10) above the kept loops' median drop: real loops of graphs whose errors are heavy-tailed
 # exceed the chi-square bound, but not their own distribution (a chi-square's lie within 2.7-3.0 to 1e-5)
@@ -133,12 +134,13 @@ def _grown(
     scaled: bool,
 ) -> tuple[gtsam.Values, np.ndarray]:
     """TLS at the squared whitened error `thresholds` (per loop) grown from the seed solution (`values`,
-    `weights`): the loops outside it that fit it as far as it is known (`_admitted`, at the seed loops' scale
-    when `scaled`) join, TLS among those (`_truncated`), and again from that solution, `ADMISSION_ROUNDS` times
-    or until nothing is admitted."""
+    `weights`): the loops outside it that fit it as far as it is known (`_admitted`, with the covariances at the
+    scale the seed solution shows when `scaled`, `_seed_scales`) join, TLS among those (`_truncated`), and again
+    from that solution, `ADMISSION_ROUNDS` times or until nothing is admitted."""
+    scales = _seed_scales(graph, values, weights, known_inliers) if scaled else (1.0, 1.0)
     for round_ in range(ADMISSION_ROUNDS):
         factor = SEED_ADMISSION_FACTOR if round_ == 0 else 1.0
-        values, candidates = _admitted(graph, values, weights, known_inliers, thresholds * factor, scaled)
+        values, candidates = _admitted(graph, values, weights, known_inliers, thresholds * factor, scales)
         if np.array_equal(candidates, weights):
             break
         values, weights = _truncated(graph, values, candidates, known_inliers, thresholds)
@@ -296,20 +298,17 @@ def _admitted(
     weights: np.ndarray,
     known_inliers: list[int],
     thresholds: np.ndarray,
-    scaled: bool,
+    scales: tuple[float, float],
 ) -> tuple[gtsam.Values, np.ndarray]:
     """The seed solution with the loops outside the seed that pass the innovation test against it, solved again.
 
     A loop far from the seed loops meets a solution that only the odometry holds there: its plain error can be
     large while the poses' uncertainty says it is plausible. The test whitens the loop's error by its covariance
-    plus its poses' covariance in the seed solution and admits it within its threshold. When `scaled`, the
-    covariances are taken at the scale the seed solution shows (each factor at most 1, so covariances not to
-    scale admit no more): the loop's by the seed loops' median squared error over the chi-square median,
-    divided by the mean share of a factor's error a least-squares fit leaves (redundancy over measurement
-    dimensions: the fit pulls every factor's error below its noise); the poses' by the seed solution's
-    a-posteriori variance factor (2 cost / redundancy). The poses' marginal covariances are taken as
-    uncorrelated, which overstates the uncertainty of poses that move together: what it lets in, `_truncated`
-    judges again.
+    plus its poses' covariance at `values` (the seed solution, or one grown from it) and admits it within its
+    threshold. The loop's covariance is taken `scales[0]` times, the poses' `scales[1]` times as large
+    (`_seed_scales`: at most 1, so covariances not to scale admit no more). The poses' marginal covariances are
+    taken as uncorrelated, which overstates the uncertainty of poses that move together: what it lets in,
+    `_truncated` judges again.
     Returns the solution and the weights of the seed and admitted loops (1), the candidates of `_truncated`."""
     loops = _loop_indices(graph.size(), known_inliers)
     outside = [(int(i), t) for i, t in zip(loops, thresholds) if weights[i] < 0.5]
@@ -323,15 +322,7 @@ def _admitted(
             covariances = FactorCovariances(kept, values, floor=ADMISSION_INFORMATION_FLOOR)
         except ValueError:  # poses that only loops outside the seed hold: no covariance to test against
             return values, weights
-    loop_scale, pose_scale = 1.0, 1.0
-    if scaled:
-        seed = loops[weights[loops] >= 0.5]
-        measured, redundancy = _dimensions(kept, values)
-        if redundancy > 0:
-            shrinkage = redundancy / measured  # mean share of a factor's error left after the fit
-            ratio = float(np.median([_chi2_ratio(graph.at(int(i)), values) for i in seed]))
-            loop_scale = min(1.0, ratio / shrinkage)
-            pose_scale = min(1.0, 2.0 * kept.error(values) / redundancy)
+    loop_scale, pose_scale = scales
     covariance: dict[int, np.ndarray] = {}
     admitted = weights.copy()
     for index, threshold in outside:
@@ -351,6 +342,23 @@ def _admitted(
     if np.array_equal(admitted, weights):
         return values, weights
     return refined(graph, values, admitted, relative_tol=SEED_RELATIVE_TOL), admitted
+
+
+def _seed_scales(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, weights: np.ndarray, known_inliers: list[int]
+) -> tuple[float, float]:
+    """(loop, pose) covariance scales the seed solution (`values`, `weights`) shows, each at most 1: the seed
+    loops' median squared whitened error over the chi-square median (`variance_factor`), divided by the mean
+    share of a factor's error a least-squares fit leaves (redundancy over measurement dimensions: the fit pulls
+    every factor's error below its noise); the seed solution's a-posteriori variance factor (2 cost /
+    redundancy). Taken from the seed solution only: a grown solution that wrong loops bend has a larger cost,
+    and would widen the poses' covariances for the next test."""
+    kept = _kept(graph, weights)
+    measured, redundancy = _dimensions(kept, values)
+    if redundancy <= 0:
+        return 1.0, 1.0
+    ratio = variance_factor(graph, values, weights, known_inliers)
+    return min(1.0, ratio * measured / redundancy), min(1.0, 2.0 * kept.error(values) / redundancy)
 
 
 def _chi2_ratio(factor: gtsam.NonlinearFactor, values: gtsam.Values) -> float:

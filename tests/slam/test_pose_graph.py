@@ -8,14 +8,17 @@ from scipy.stats import chi2
 from pipelines.simulation.correspondences import random_transform
 from sandro_core import SandroConfig, register
 from sandro_core.geometry import transform_points
+from sandro_slam import robust_backend
 from sandro_slam.config import GraphConfig
 from sandro_slam.factors import between_factor, odometry_covariance
 from sandro_slam.pose_graph import PoseGraph
 from sandro_slam.robust_backend import (
     _gnc,
+    _grown,
     _loop_indices,
     _pruned,
     _scaled_run_wins,
+    _seed_scales,
     _truncated,
     readmitted,
     refined,
@@ -257,6 +260,27 @@ def test_estimated_noise_scale_rejects_wrong_loops_that_loose_covariances_let_pa
     assert set(wrong) <= rejected and len(rejected - set(wrong)) <= 1
     errors = [np.linalg.norm(values.atPose3(i).translation() - truth[i][:3, 3]) for i in range(40)]
     assert max(errors) < 0.1  # 1-1.5 m with the given covariances
+
+
+def test_both_innovation_tests_take_the_covariance_scales_of_the_seed_solution(monkeypatch):
+    """The seed solution of `_loose_graph` (covariances 100x the noise): both covariance scales near (1/100)^2.
+    The grown solution's cost includes whatever the first test let in; the second test must not take its scale
+    from there (SE-Sync's ais2klinik: wrong loops raised it 30x, and the second test let 44 more in)."""
+    graph, initial, known, wrong, _ = _loose_graph()
+    loops = _loop_indices(graph.size(), known)
+    weights = np.ones(graph.size())
+    weights[wrong] = 0.0
+    weights[loops[loops % 2 == 1]] = 0.0  # seeds: half the real loops
+    values = refined(graph, initial, weights)
+    scales = _seed_scales(graph, values, weights, known)
+    assert all(1e-5 < scale < 1e-3 for scale in scales)
+    taken = []
+    admitted = robust_backend._admitted
+    monkeypatch.setattr(robust_backend, "_admitted", lambda *args: taken.append(args[-1]) or admitted(*args))
+    thresholds = np.full(len(loops), chi2.ppf(GraphConfig().inlier_probability, 6))
+    _, grown = _grown(graph, values, weights, known, thresholds, scaled=True)
+    assert taken == [scales, scales]  # the first test admitted the other real loops, then the second ran
+    assert np.all(grown[wrong] == 0.0) and np.all(np.delete(grown, wrong) == 1.0)
 
 
 def _tight_graph(seed: int):
