@@ -41,7 +41,7 @@ MIN_LOOPS_FOR_SCALE = 10  # kept loops needed to estimate their variance factor
 MIN_KEPT_SHARE = 0.8  # noise_scale 'estimated': of the first run's loops, the scaled run must keep more than this
 MIN_FIT_GAIN = 2.0  # and fit those it keeps this much better (median squared error) than the first run
 MIN_TIGHT_FACTOR = 2.0  # noise_scale 'estimated': the seed loops' variance factor above which the covariances are
-# taken as too tight, and every inlier threshold grows by it (`_tightness`; below it they stand as given)
+# taken as too tight, and every inlier threshold grows by it (`_seed_scales`; below it they stand as given)
 MIN_SEED_LOOPS = 10  # loops agreeing with their neighbours needed to start TLS from them rather than run GNC
 SEED_ADMISSION_FACTOR = 1.5  # on the inlier threshold, of the innovation test against the seed solution: the
 # poses where the seed loops are sparse are still far from where all loops put them
@@ -79,7 +79,7 @@ def robust_optimize(
     GncLMOptimizer with the Geman-McClure cost. Then Levenberg-Marquardt to convergence (`REFINE_RELATIVE_TOL`)
     on the factors kept.
     With `noise_scale: estimated`, for graphs whose covariances are not to scale: when the seed loops fit far worse
-    than their covariances say, every threshold grows by how much (`_tightness`); when the loops the first run
+    than their covariances say, every threshold grows by how much (`_seed_scales`); when the loops the first run
     kept fit better than their covariances say (`variance_factor` below 1), a second run takes the thresholds
     times that factor (TLS from the first run's loops, or GNC from `initial`), loops it rejected that fit as
     well as the heavy tail of those it kept come back (`readmitted`), and its result replaces the first when
@@ -98,10 +98,14 @@ def robust_optimize(
     seeded = _seeded(graph, initial, known_inliers, seed, thresholds)
     tight = 1.0
     if seeded is not None:
+        scales = (1.0, 1.0)  # of the loops' and the poses' covariances in the innovation test
         if config.noise_scale == "estimated":
-            tight = _tightness(graph, *seeded, known_inliers)
-            thresholds = thresholds * tight
-        values, weights = _grown(graph, *seeded, known_inliers, thresholds, config.noise_scale == "estimated")
+            ratio, loop_scale, pose_scale = _seed_scales(graph, *seeded, known_inliers)
+            if ratio > MIN_TIGHT_FACTOR:  # covariances too tight: every threshold grows
+                tight = loop_scale
+                thresholds = thresholds * tight
+            scales = (min(1.0, loop_scale), min(1.0, pose_scale))  # covariances not to scale admit no more
+        values, weights = _grown(graph, *seeded, known_inliers, thresholds, scales)
     else:
         values, weights = _gnc(graph, initial, known_inliers, config, 0.5 * thresholds[0])
     if config.robust == "gnc_tls" and _strained(graph, values, known_inliers, tight):
@@ -131,13 +135,13 @@ def _grown(
     weights: np.ndarray,
     known_inliers: list[int],
     thresholds: np.ndarray,
-    scaled: bool,
+    scales: tuple[float, float],
 ) -> tuple[gtsam.Values, np.ndarray]:
     """TLS at the squared whitened error `thresholds` (per loop) grown from the seed solution (`values`,
-    `weights`): the loops outside it that fit it as far as it is known (`_admitted`, with the covariances at the
-    scale the seed solution shows when `scaled`, `_seed_scales`) join, TLS among those (`_truncated`), and again
-    from that solution, `ADMISSION_ROUNDS` times or until nothing is admitted."""
-    scales = _seed_scales(graph, values, weights, known_inliers) if scaled else (1.0, 1.0)
+    `weights`): the loops outside it that fit it as far as it is known (`_admitted`, with the loops' and the
+    poses' covariances `scales` times as large in every round: the seed solution's, not those of a solution that
+    the loops admitted in between bend) join, TLS among those (`_truncated`), and again from that solution,
+    `ADMISSION_ROUNDS` times or until nothing is admitted."""
     for round_ in range(ADMISSION_ROUNDS):
         factor = SEED_ADMISSION_FACTOR if round_ == 0 else 1.0
         values, candidates = _admitted(graph, values, weights, known_inliers, thresholds * factor, scales)
@@ -192,20 +196,6 @@ def _pruned(
         values = refined(graph, values, candidates, relative_tol=SEED_RELATIVE_TOL)
         values, weights = _truncated(graph, values, candidates, known_inliers, thresholds)
     return values, weights
-
-
-def _tightness(
-    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, weights: np.ndarray, known_inliers: list[int]
-) -> float:
-    """How many times the covariances understate the noise, from the seed solution (`values`, `weights`): when the
-    seed loops' median squared whitened error over the chi-square median (`variance_factor`) exceeds
-    `MIN_TIGHT_FACTOR`, that ratio over the mean share of a factor's error a least-squares fit leaves (redundancy
-    over measurement dimensions); else 1. The median, not the seed solution's cost: a wrong seed inflates that."""
-    ratio = variance_factor(graph, values, weights, known_inliers)
-    if ratio <= MIN_TIGHT_FACTOR:
-        return 1.0
-    measured, redundancy = _dimensions(_kept(graph, weights), values)
-    return ratio * measured / max(redundancy, 1)
 
 
 def _dimensions(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> tuple[int, int]:
@@ -306,7 +296,7 @@ def _admitted(
     large while the poses' uncertainty says it is plausible. The test whitens the loop's error by its covariance
     plus its poses' covariance at `values` (the seed solution, or one grown from it) and admits it within its
     threshold. The loop's covariance is taken `scales[0]` times, the poses' `scales[1]` times as large
-    (`_seed_scales`: at most 1, so covariances not to scale admit no more). The poses' marginal covariances are
+    (at most 1, so covariances not to scale admit no more). The poses' marginal covariances are
     taken as uncorrelated, which overstates the uncertainty of poses that move together: what it lets in,
     `_truncated` judges again.
     Returns the solution and the weights of the seed and admitted loops (1), the candidates of `_truncated`."""
@@ -346,19 +336,19 @@ def _admitted(
 
 def _seed_scales(
     graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, weights: np.ndarray, known_inliers: list[int]
-) -> tuple[float, float]:
-    """(loop, pose) covariance scales the seed solution (`values`, `weights`) shows, each at most 1: the seed
-    loops' median squared whitened error over the chi-square median (`variance_factor`), divided by the mean
-    share of a factor's error a least-squares fit leaves (redundancy over measurement dimensions: the fit pulls
-    every factor's error below its noise); the seed solution's a-posteriori variance factor (2 cost /
-    redundancy). Taken from the seed solution only: a grown solution that wrong loops bend has a larger cost,
-    and would widen the poses' covariances for the next test."""
+) -> tuple[float, float, float]:
+    """How the seed solution (`values`, `weights`) fits against its covariances: (the seed loops'
+    `variance_factor`; that over the mean share of a factor's error a least-squares fit leaves (redundancy over
+    measurement dimensions: the fit pulls every factor's error below its noise), how many times the loops'
+    covariances understate (above 1) or overstate their noise; the seed solution's a-posteriori variance factor
+    (2 cost / redundancy), the same for the poses'). The median, not the cost, for the loops: a wrong seed inflates
+    the cost. Without redundancy the fit says nothing of the noise: both scales 1."""
+    ratio = variance_factor(graph, values, weights, known_inliers)
     kept = _kept(graph, weights)
     measured, redundancy = _dimensions(kept, values)
     if redundancy <= 0:
-        return 1.0, 1.0
-    ratio = variance_factor(graph, values, weights, known_inliers)
-    return min(1.0, ratio * measured / redundancy), min(1.0, 2.0 * kept.error(values) / redundancy)
+        return ratio, 1.0, 1.0
+    return ratio, ratio * measured / redundancy, 2.0 * kept.error(values) / redundancy
 
 
 def _chi2_ratio(factor: gtsam.NonlinearFactor, values: gtsam.Values) -> float:
