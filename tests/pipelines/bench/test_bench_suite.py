@@ -2,11 +2,12 @@
 
 import json
 from collections import Counter
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from pipelines.bench.suite import check_targets
+from pipelines.bench.suite import check_targets, floor_pairs, overlapping
 from pipelines.cli.bench import main
 from pipelines.simulation.suite import SUITE, cached_frames
 
@@ -49,6 +50,26 @@ def test_targets_name_every_miss():
         "refined: median ATE 0.30x KISS-ICP's (target <= 0.2x)",
         "refined: median time 2.50x the first pass's (target <= 2x)",
     ]
+
+
+def test_floor_pairs_are_near_and_far_apart_and_the_registrable_ones_share_their_submaps():
+    """Four keyframes on a line, 10 m apart in travel; 0 and 3 come back to the same place. Keyframe 2's submap
+    holds another part of the world than 0's (a narrow view the other way)."""
+    rng = np.random.default_rng(0)
+    ahead = rng.uniform([0.0, -5.0, -1.0], [10.0, 5.0, 1.0], size=(2000, 3))  # [m] in front of the sensor
+    truth = np.tile(np.eye(4), (4, 1, 1))
+    truth[:, 0, 3] = [0.0, 8.0, 1.0, 0.5]  # [m] the anchors' true positions: 2 and 3 back near 0
+    truth[2, :3, :3] = np.diag([-1.0, -1.0, 1.0])  # keyframe 2 looks the other way
+    keyframes = [
+        SimpleNamespace(key=k, anchor_frame=k, travelled=10.0 * k, points=(seen - truth[k, :3, 3]) @ truth[k, :3, :3])
+        for k, seen in enumerate([ahead, ahead, ahead * [-1.0, 1.0, 1.0], ahead])
+    ]  # each submap in its keyframe's frame: the points ahead of keyframe 0, keyframe 2's those behind it
+    config = SimpleNamespace(loops=SimpleNamespace(radius=2.0, exclude_recent=15.0),
+                             keyframes=SimpleNamespace(submap_voxel=0.5))  # fmt: skip
+    result = SimpleNamespace(keyframes=keyframes, config=config)
+    pairs = floor_pairs(result, truth)
+    assert pairs == [(0, 2), (0, 3)]  # 1 and 3: 7.5 m apart
+    assert overlapping(result, truth, pairs) == [(0, 3)]  # 2 saw nothing of what 0 saw
 
 
 @pytest.mark.slow
