@@ -19,8 +19,9 @@ Per sequence, run in turn on the same frames:
         submaps would measure. Two more floors tell apart what a miss of the first is made of: over only the pairs
         whose submaps share what a registration needs (`overlapping`: at least FLOOR_MIN_SHARED of the smaller
         one's voxels at the true poses; a narrow field of view that came back the other way shares none), and
-        over only the pairs of the loops sandro-slam kept (where its loops are, measured perfectly: above the
-        floor by the pairs it did not find, below its own ATE by its loops' errors).
+        the perfect-registration floor over only the pairs of the loops sandro-slam kept (where its loops are,
+        each measured as a perfect registration would: above the perfect-registration floor by the pairs it did
+        not close, below its own ATE by its loops' errors).
 Measured: ATE (RMSE of positions after an SE3 alignment) of each and of sandro-slam's odometry before its loops
 (`ate_odometry`), frames/s of each pipeline, the verified loops against the truth (wrong: more than WRONG_LOOP_M or
 WRONG_LOOP_DEG off; wrong ones kept in the final graph, real ones rejected), and against the frames their submaps
@@ -155,13 +156,13 @@ def evaluate_sequence(
     registrable = overlapping(result, truth, pairs)
     row["floor_loops_overlapping"] = len(registrable)
     row["ate_overlap_floor"] = ate(perfect_loop_floor(result, truth, registrable), truth)
-    kept_pairs = [(loop.target_key, loop.source_key) for loop in result.loops if loop.weight >= 0.5]
-    row["ate_kept_pairs_floor"] = ate(perfect_loop_floor(result, truth, kept_pairs), truth)
     for name, poses in trajectories.items():
         row[f"ate_{_key(name)}"] = ate(poses, truth)
     row["ate_odometry"] = ate(result.odometry_poses, truth)
     corrections = submap_frames(result, truth)
     row["ate_perfect_registration_floor"] = ate(perfect_loop_floor(result, truth, pairs, corrections), truth)
+    kept_pairs = [(loop.target_key, loop.source_key) for loop in result.loops if loop.weight >= 0.5]
+    row["ate_kept_pairs_registration_floor"] = ate(perfect_loop_floor(result, truth, kept_pairs, corrections), truth)
     row["revisits"] = row["floor_loops"] > 0
     row.update(loops_against_truth(result, truth, WRONG_LOOP_M, WRONG_LOOP_DEG))
     row["loops_wrong_kept"] = row.get("loops_wrong", 0) - row.get("loops_wrong_rejected", 0)
