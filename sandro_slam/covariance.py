@@ -121,6 +121,48 @@ class FactorCovariances:
         A, b = factor.linearize(values).jacobian()
         return b, A @ self.joint(list(factor.keys())) @ A.T
 
+    def mahalanobis(
+        self,
+        factors: list[gtsam.NonlinearFactor],
+        values: gtsam.Values,
+        measurement_scale: float = 1.0,
+        variable_scale: float = 1.0,
+        correlated: bool = True,
+    ) -> np.ndarray:
+        """(len(factors),) b^T S^-1 b per factor linearised at `values`: b its whitened error vector, A its
+        whitened Jacobian and S = `measurement_scale` I + `variable_scale` A Sigma A^T, Sigma its variables' joint
+        covariance (`correlated`) or their marginal blocks alone (cross-covariances taken as zero). Batched over
+        the factors of one shape: the same as `projected` factor by factor.
+
+        Raises:
+            KeyError: a pair of a factor's variables is not on the pattern (`correlated` only).
+        """
+        out = np.empty(len(factors))
+        groups: dict[tuple, tuple[list[int], list[np.ndarray], list[np.ndarray], list[np.ndarray]]] = {}
+        for n, factor in enumerate(factors):
+            A, b = factor.linearize(values).jacobian()
+            keys = factor.keys()
+            shape = (A.shape, tuple(self._dim[key] for key in keys))
+            positions, jacobians, errors, columns = groups.setdefault(shape, ([], [], [], []))
+            positions.append(n)
+            jacobians.append(A)
+            errors.append(b)
+            columns.append(np.concatenate([self._columns(key) for key in keys]))
+        for ((m, k), dims), (positions, jacobians, errors, columns) in groups.items():
+            C = self._position[np.array(columns)]  # (factors, k)
+            rows, cols = np.maximum(C[:, :, None], C[:, None, :]), np.minimum(C[:, :, None], C[:, None, :])
+            sigma = _entries(self._indptr, self._indices, self._z, rows.ravel(), cols.ravel()).reshape(-1, k, k)
+            if not correlated:
+                own = np.repeat(np.arange(len(dims)), dims)
+                sigma = np.where(own[:, None] == own[None, :], sigma, 0.0)
+            if np.isnan(sigma).any():
+                raise KeyError("a factor's joint covariance is not on the factor's pattern")
+            A = np.stack(jacobians)
+            b = np.stack(errors)
+            S = measurement_scale * np.eye(m) + variable_scale * (A @ sigma @ np.swapaxes(A, 1, 2))
+            out[positions] = np.einsum("nm,nm->n", b, np.linalg.solve(S, b[:, :, None])[:, :, 0])
+        return out
+
     def _gathered(self, rows: np.ndarray, cols: np.ndarray, what: str) -> np.ndarray:
         """The covariance entries at variable columns `rows` x `cols`; KeyError naming `what` off the pattern."""
         rows, cols = self._position[rows], self._position[cols]

@@ -60,10 +60,12 @@ def supported_loops(graph: gtsam.NonlinearFactorGraph, known_inliers: list[int])
     i, j = pairs[:, 0], pairs[:, 1]
     separation = np.maximum(np.abs(ends_arr[i, 2] - ends_arr[j, 2]), np.abs(ends_arr[i, 4] - ends_arr[j, 4]))
     P = chains.poses
-    a_i, a_j, b_i, b_j = ends_arr[i, 5], ends_arr[j, 5], ends_arr[i, 6], ends_arr[j, 6]
-    # The cycle: loop i^-1, chain a_i -> a_j, loop j, chain b_j -> b_i; the identity for loops that agree.
-    cycle = np.linalg.inv(measured_arr[i]) @ np.linalg.inv(P[a_i]) @ P[a_j] @ measured_arr[j]
-    cycle = cycle @ np.linalg.inv(P[b_j]) @ P[b_i]
+    a, b = ends_arr[:, 5], ends_arr[:, 6]
+    # The cycle: loop i^-1, chain a_i -> a_j, loop j, chain b_j -> b_i; the identity for loops that agree. Per
+    # loop first (X = loop^-1 P_a^-1, Y = P_a loop P_b^-1), then two products per pair: X_i Y_j P_b_i.
+    X = _rigid_inverse(P[a] @ measured_arr)
+    Y = P[a] @ measured_arr @ _rigid_inverse(P[b])
+    cycle = X[i] @ Y[j] @ P[b[i]]
     translation = np.linalg.norm(cycle[:, :3, 3], axis=1)
     rotation = rotation_angle(cycle[:, :3, :3])
     # Each loop is judged by its nearest neighbours (the smallest separation at which it has any).
@@ -136,6 +138,16 @@ class _Chains:
         if a not in self._where or b not in self._where:
             return None
         return self._where[a], self._where[b]
+
+
+def _rigid_inverse(T: np.ndarray) -> np.ndarray:
+    """The inverses of a stack (..., 4, 4) of rigid transforms."""
+    inverse = np.zeros_like(T)
+    R_T = np.swapaxes(T[..., :3, :3], -1, -2)
+    inverse[..., :3, :3] = R_T
+    inverse[..., :3, 3] = -(R_T @ T[..., :3, 3:])[..., 0]
+    inverse[..., 3, 3] = 1.0
+    return inverse
 
 
 def _is_between(factor: gtsam.NonlinearFactor) -> bool:

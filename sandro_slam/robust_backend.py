@@ -105,14 +105,17 @@ def robust_optimize(
                 tight = loop_scale
                 thresholds = thresholds * tight
             scales = (min(1.0, loop_scale), min(1.0, pose_scale))  # covariances not to scale admit no more
-        values, weights = _grown(graph, *seeded, known_inliers, thresholds, scales)
+        covariances = _Covariances(graph)
+        values, weights = _grown(graph, *seeded, known_inliers, thresholds, scales, covariances)
     else:
         values, weights = _gnc(graph, initial, known_inliers, config, 0.5 * thresholds[0])
     if config.robust == "gnc_tls" and _strained(graph, values, known_inliers, tight):
         judged = _truncated(graph, initial, np.ones(graph.size()), known_inliers, thresholds)
         values, weights = _lower_cost(graph, (values, weights), judged, known_inliers, thresholds)
     if seeded is not None:
-        values, weights = _pruned(graph, values, weights, known_inliers, thresholds, config.inlier_probability, tight)
+        values, weights = _pruned(
+            graph, values, weights, known_inliers, thresholds, config.inlier_probability, tight, covariances
+        )
     values = refined(graph, values, weights)
     if config.noise_scale == "estimated" and len(set(dims)) == 1:
         scale = variance_factor(graph, values, weights, known_inliers)
@@ -136,15 +139,18 @@ def _grown(
     known_inliers: list[int],
     thresholds: np.ndarray,
     scales: tuple[float, float],
+    covariances: _Covariances | None = None,
 ) -> tuple[gtsam.Values, np.ndarray]:
     """TLS at the squared whitened error `thresholds` (per loop) grown from the seed solution (`values`,
     `weights`): the loops outside it that fit it as far as it is known (`_admitted`, with the loops' and the
     poses' covariances `scales` times as large in every round: the seed solution's, not those of a solution that
     the loops admitted in between bend) join, TLS among those (`_truncated`), and again from that solution,
-    `ADMISSION_ROUNDS` times or until nothing is admitted."""
+    `ADMISSION_ROUNDS` times or until nothing is admitted. `covariances` computes the poses' covariances (and
+    keeps the last for the removal test)."""
+    covariances = covariances or _Covariances(graph)
     for round_ in range(ADMISSION_ROUNDS):
         factor = SEED_ADMISSION_FACTOR if round_ == 0 else 1.0
-        values, candidates = _admitted(graph, values, weights, known_inliers, thresholds * factor, scales)
+        values, candidates = _admitted(graph, values, weights, known_inliers, thresholds * factor, scales, covariances)
         if np.array_equal(candidates, weights):
             break
         values, weights = _truncated(graph, values, candidates, known_inliers, thresholds)
@@ -159,6 +165,7 @@ def _pruned(
     thresholds: np.ndarray,
     probability: float,
     scale: float = 1.0,
+    covariances: _Covariances | None = None,
 ) -> tuple[gtsam.Values, np.ndarray]:
     """The removal test on the kept loops of the solution (`values`, `weights`), with the covariances taken
     `scale` times as large.
@@ -172,7 +179,9 @@ def _pruned(
     at the per-loop quantile, TLS's threshold, one real loop in a hundred would go), and the tail of the kept
     loops' drops (`REMOVAL_SIGMAS`: real loops of graphs with heavy-tailed errors exceed the first). Of those,
     the ones within `REMOVAL_SHARE` of the largest excess go for good, TLS among the other loops of `weights`
-    (`_truncated`, at `thresholds`) is solved again, up to `MAX_REMOVAL_ROUNDS` times."""
+    (`_truncated`, at `thresholds`) is solved again, up to `MAX_REMOVAL_ROUNDS` times. `covariances` computes the
+    poses' covariances (the growth's last, where it ended at `values`)."""
+    covariances = covariances or _Covariances(graph)
     loops = _loop_indices(graph.size(), known_inliers)
     dims = np.array([graph.at(int(i)).dim() for i in loops])
     candidates = weights.copy()
@@ -181,13 +190,11 @@ def _pruned(
         if mine.sum() < MIN_LOOPS_FOR_SCALE:  # too few drops for their tail
             break
         try:
-            covariances = FactorCovariances(_kept(graph, weights), values)
+            at_solution = covariances(weights, values)
         except ValueError:
             break
         drops = np.zeros(len(loops))
-        for n in np.flatnonzero(mine):
-            b, M = covariances.projected(graph.at(int(loops[n])), values)
-            drops[n] = float(b @ np.linalg.solve(np.eye(len(b)) - M, b))
+        drops[mine] = at_solution.mahalanobis([graph.at(int(i)) for i in loops[mine]], values, 1.0, -1.0)
         limits = scale * chi2.isf((1.0 - probability) / mine.sum(), dims)
         excess = np.where(drops > _tail_limit(drops[mine], REMOVAL_SIGMAS), drops / limits - 1.0, 0.0)
         if excess.max() <= 0.0:
@@ -289,6 +296,7 @@ def _admitted(
     known_inliers: list[int],
     thresholds: np.ndarray,
     scales: tuple[float, float],
+    covariances: _Covariances,
 ) -> tuple[gtsam.Values, np.ndarray]:
     """The seed solution with the loops outside the seed that pass the innovation test against it, solved again.
 
@@ -304,31 +312,17 @@ def _admitted(
     outside = [(int(i), t) for i, t in zip(loops, thresholds) if weights[i] < 0.5]
     if not outside:
         return values, weights
-    kept = _kept(graph, weights)
     try:
-        covariances = FactorCovariances(kept, values)
+        at_solution = covariances(weights, values)
     except ValueError:  # covariances that leave directions free (roll and pitch of planar odometry, chains held
         try:  # by weak priors): bounded by a weak prior on every pose
-            covariances = FactorCovariances(kept, values, floor=ADMISSION_INFORMATION_FLOOR)
+            at_solution = covariances(weights, values, floor=ADMISSION_INFORMATION_FLOOR)
         except ValueError:  # poses that only loops outside the seed hold: no covariance to test against
             return values, weights
-    loop_scale, pose_scale = scales
-    covariance: dict[int, np.ndarray] = {}
+    indices, limits = (np.array(column) for column in zip(*outside))
+    innovations = at_solution.mahalanobis([graph.at(int(i)) for i in indices], values, *scales, correlated=False)
     admitted = weights.copy()
-    for index, threshold in outside:
-        factor = graph.at(index)
-        A, b = factor.linearize(values).jacobian()  # whitened by the loop's own covariance; columns in key order
-        M = loop_scale * np.eye(len(b))
-        column = 0
-        for key in factor.keys():
-            if key not in covariance:
-                covariance[key] = covariances.block(key, key)
-            A_key = A[:, column : column + len(covariance[key])]
-            M += pose_scale * A_key @ covariance[key] @ A_key.T
-            column += len(covariance[key])
-        innovation = float(b @ np.linalg.solve(M, b))
-        if innovation <= threshold:
-            admitted[index] = 1.0
+    admitted[indices[innovations <= limits]] = 1.0
     if np.array_equal(admitted, weights):
         return values, weights
     return refined(graph, values, admitted, relative_tol=SEED_RELATIVE_TOL), admitted
@@ -434,6 +428,32 @@ def _kept(graph: gtsam.NonlinearFactorGraph, weights: np.ndarray) -> gtsam.Nonli
     for index in np.flatnonzero(weights >= 0.5):
         kept.add(graph.at(int(index)))
     return kept
+
+
+class _Covariances:
+    """`FactorCovariances` of the factors of `graph` kept by some weights at some values, remembering the last: the
+    removal test (`_pruned`) starts at the solution where the growth's last innovation test (`_admitted`) admitted
+    nothing, and need not factorise the same information matrix again."""
+
+    def __init__(self, graph: gtsam.NonlinearFactorGraph):
+        self._graph = graph
+        self._last: tuple[np.ndarray, gtsam.Values, float, FactorCovariances] | None = None
+
+    def __call__(self, weights: np.ndarray, values: gtsam.Values, floor: float = 0.0) -> FactorCovariances:
+        """The covariances of the factors of weight >= 0.5 at `values` (the same object as the last call's to
+        reuse it), with `floor` as in `FactorCovariances`.
+
+        Raises:
+            ValueError: as `FactorCovariances`.
+        """
+        kept = weights >= 0.5
+        if self._last is not None:
+            last_kept, last_values, last_floor, covariances = self._last
+            if last_values is values and last_floor == floor and np.array_equal(last_kept, kept):
+                return covariances
+        covariances = FactorCovariances(_kept(self._graph, weights), values, floor=floor)
+        self._last = kept, values, floor, covariances
+        return covariances
 
 
 def variance_factor(

@@ -66,6 +66,24 @@ def test_blocks_equal_gtsam_marginals(is3d, loops):
         np.testing.assert_allclose(covariances.joint(list(keys)), joint, rtol=1e-8, atol=1e-9 * np.abs(joint).max())
 
 
+@pytest.mark.parametrize("is3d", [False, True])
+def test_mahalanobis_of_many_factors_is_each_factors_own(is3d):
+    graph, values = _loop_graph(is3d, loops=30)
+    covariances = FactorCovariances(graph, values)
+    factors = [graph.at(i) for i in range(graph.size())]  # the prior and the between factors: two shapes
+    drops = covariances.mahalanobis(factors, values, 1.0, -1.0)  # the cost drop of removing each factor
+    innovations = covariances.mahalanobis(factors, values, 2.0, 0.5, correlated=False)
+    for n, factor in enumerate(factors):
+        b, M = covariances.projected(factor, values)
+        np.testing.assert_allclose(drops[n], b @ np.linalg.solve(np.eye(len(b)) - M, b), rtol=1e-9)
+        A, _ = factor.linearize(values).jacobian()
+        d = A.shape[1] // len(factor.keys())
+        blocks = [covariances.block(key, key) for key in factor.keys()]
+        S = 2.0 * np.eye(len(b)) + 0.5 * sum(A[:, i * d : (i + 1) * d] @ C @ A[:, i * d : (i + 1) * d].T
+                                             for i, C in enumerate(blocks))  # fmt: skip
+        np.testing.assert_allclose(innovations[n], b @ np.linalg.solve(S, b), rtol=1e-9)
+
+
 def test_pair_off_the_pattern_is_refused():
     graph, values = _loop_graph(False, poses=10, loops=0)  # a chain: eliminating it joins only neighbours
     covariances = FactorCovariances(graph, values)

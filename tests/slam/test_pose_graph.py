@@ -276,7 +276,7 @@ def test_both_innovation_tests_take_the_covariance_scales_of_the_seed_solution(m
     assert all(1e-5 < scale < 1e-3 for scale in scales)
     taken = []
     admitted = robust_backend._admitted
-    monkeypatch.setattr(robust_backend, "_admitted", lambda *args: taken.append(args[-1]) or admitted(*args))
+    monkeypatch.setattr(robust_backend, "_admitted", lambda *args: taken.append(args[5]) or admitted(*args))
     thresholds = np.full(len(loops), chi2.ppf(GraphConfig().inlier_probability, 6))
     _, grown = _grown(graph, values, weights, known, thresholds, scales)
     assert taken == [scales, scales]  # the first test admitted the other real loops, then the second ran
