@@ -5,12 +5,14 @@ far, and creeps along the flat valleys of graphs that long odometry holds loosel
 the optimum in a few iterations (Carlone et al., "Initialization techniques for 3D SLAM", ICRA 2015). 3D: gtsam's
 InitializePose3 (chordal rotations, then the translations' linear least squares); 2D: gtsam's LAGO, which takes
 diagonal noise models only, so it gets each factor's covariance diagonal (the start only, not the solution), and
-its spanning tree along consecutive keys where they are all joined, else from the graph (odometry with gaps).
+its spanning tree along consecutive keys (bridged where odometry chains leave gaps), else from the graph.
 Each connected part of the graph is relaxed on its own and placed by its own prior; where the covariances leave a
 rotation free, with every measurement weighed alike.
 """
 
 from __future__ import annotations
+
+from collections import deque
 
 import gtsam
 import numpy as np
@@ -20,6 +22,7 @@ from scipy.sparse import csgraph
 from sandro_slam.factors import gaussian_noise
 
 ANCHOR_SIGMA = 1e-3  # [rad], [m] of the prior that fixes a part's frame at the origin
+BRIDGE_SIGMA = 1e6  # [rad], [m] of the factors that join consecutive keys for LAGO's spanning tree only
 _POSE_FACTORS = {
     gtsam.BetweenFactorPose2: False,
     gtsam.PriorFactorPose2: False,
@@ -71,12 +74,41 @@ def _parts(graph: gtsam.NonlinearFactorGraph) -> list[gtsam.NonlinearFactorGraph
     return parts
 
 
-def _has_odometric_path(graph: gtsam.NonlinearFactorGraph) -> bool:
-    """Whether a between factor joins every key to the next (keys consecutive integers): LAGO's spanning tree is
-    then that path, found in linear time (its general search took 0.3-0.5 s on 3500-4500 poses)."""
+def _with_odometric_path(graph: gtsam.NonlinearFactorGraph) -> tuple[gtsam.NonlinearFactorGraph, bool]:
+    """(`graph`, whether LAGO may take its spanning tree along consecutive keys): found in linear time, where its
+    general search took 0.3-0.5 s on 3500-4500 poses and 6.6 s on SE-Sync's ais2klinik (15115). Where the keys are
+    consecutive integers but a pair of neighbours has no between factor (odometry chains that loops join), a copy
+    with one, its measurement composed along a breadth-first tree of the measurements and its sigmas
+    `BRIDGE_SIGMA`: it carries the tree's orientations across the gap and weighs nothing in the solution. False
+    when the keys are not consecutive integers."""
     keys = sorted(graph.keyVector())
-    steps = {tuple(sorted(graph.at(i).keys())) for i in range(graph.size()) if graph.at(i).size() == 2}
-    return all((a, a + 1) in steps for a in keys[:-1]) if keys else False
+    if not keys or keys[-1] - keys[0] != len(keys) - 1:
+        return graph, False
+    steps: dict[int, list[tuple[int, gtsam.Pose2]]] = {}
+    for i in range(graph.size()):
+        factor = graph.at(i)
+        if factor.size() == 2:
+            a, b = factor.keys()
+            steps.setdefault(a, []).append((b, factor.measured()))
+            steps.setdefault(b, []).append((a, factor.measured().inverse()))
+    gaps = [a for a in keys[:-1] if all(b != a + 1 for b, _ in steps.get(a, []))]
+    if not gaps:
+        return graph, True
+    poses = {keys[0]: gtsam.Pose2()}
+    frontier = deque([keys[0]])
+    while frontier:
+        a = frontier.popleft()
+        for b, step in steps.get(a, []):
+            if b not in poses:
+                poses[b] = poses[a].compose(step)
+                frontier.append(b)
+    if len(poses) < len(keys):  # not one part: LAGO's own search says so
+        return graph, False
+    bridged = gtsam.NonlinearFactorGraph(graph)
+    noise = gtsam.noiseModel.Isotropic.Sigma(3, BRIDGE_SIGMA)
+    for a in gaps:
+        bridged.add(gtsam.BetweenFactorPose2(a, a + 1, poses[a].between(poses[a + 1]), noise))
+    return bridged, True
 
 
 def _anchored(
@@ -113,7 +145,7 @@ def _relaxed(graph: gtsam.NonlinearFactorGraph, is3d: bool) -> gtsam.Values | No
     try:
         if is3d:
             return gtsam.InitializePose3.initialize(graph)
-        return gtsam.lago.initialize(_reweighted(graph, is3d), useOdometricPath=_has_odometric_path(graph))
+        return gtsam.lago.initialize(*_with_odometric_path(_reweighted(graph, is3d)))
     except (RuntimeError, IndexError):  # gtsam: an indeterminate system, or LAGO's spanning tree misses a pose
         return None
 

@@ -4,7 +4,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from sandro_slam.chordal import chordal_values
+from sandro_slam.chordal import _anchored, _reweighted, _with_odometric_path, chordal_values
 from sandro_slam.config import GraphConfig
 from sandro_slam.robust_backend import robust_optimize
 
@@ -134,6 +134,29 @@ def test_odometry_with_a_gap_that_loops_bridge_has_a_relaxation():
     for k, pose in enumerate(poses):
         truth.insert(k, pose)
     assert gapped.error(_lm(gapped, start)) == pytest.approx(gapped.error(_lm(gapped, truth)), rel=1e-6)
+
+
+def test_lago_takes_its_tree_across_a_gap_in_the_odometry_without_moving_its_relaxation():
+    graph, _, _, identity = _graph(_circle_poses(3, 20), 20, n_wrong=0, seed=0, rotation_sigma=0.05)
+    gapped = gtsam.NonlinearFactorGraph()
+    for i in range(graph.size()):
+        if graph.at(i).keys() != [29, 30]:
+            gapped.add(graph.at(i))
+    lago_input = _reweighted(_anchored(gapped, identity, is3d=False)[0], is3d=False)
+    bridged, along_keys = _with_odometric_path(lago_input)
+    assert along_keys and bridged.size() == lago_input.size() + 1
+    general = gtsam.lago.initialize(lago_input, useOdometricPath=False)
+    along = gtsam.lago.initialize(bridged, useOdometricPath=True)
+    for k in range(60):
+        np.testing.assert_allclose(along.atPose2(k).matrix(), general.atPose2(k).matrix(), atol=1e-6)
+    renumbered = gtsam.NonlinearFactorGraph()  # keys 0, 2, 4, ...: no path along consecutive keys to take
+    for i in range(lago_input.size()):
+        factor = lago_input.at(i)
+        if factor.size() == 2:
+            a, b = factor.keys()
+            renumbered.add(gtsam.BetweenFactorPose2(2 * a, 2 * b, factor.measured(), factor.noiseModel()))
+    same, along_keys = _with_odometric_path(renumbered)
+    assert same is renumbered and not along_keys
 
 
 @pytest.mark.parametrize("shape", ["torus", "circle"])
