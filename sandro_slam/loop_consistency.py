@@ -63,8 +63,9 @@ def supported_loops(graph: gtsam.NonlinearFactorGraph, known_inliers: list[int])
     a, b = ends_arr[:, 5], ends_arr[:, 6]
     # The cycle: loop i^-1, chain a_i -> a_j, loop j, chain b_j -> b_i; the identity for loops that agree. Per
     # loop first (X = loop^-1 P_a^-1, Y = P_a loop P_b^-1), then two products per pair: X_i Y_j P_b_i.
-    X = _rigid_inverse(P[a] @ measured_arr)
-    Y = P[a] @ measured_arr @ _rigid_inverse(P[b])
+    P_a_loop = P[a] @ measured_arr
+    X = _rigid_inverse(P_a_loop)
+    Y = P_a_loop @ _rigid_inverse(P[b])
     cycle = X[i] @ Y[j] @ P[b[i]]
     translation = np.linalg.norm(cycle[:, :3, 3], axis=1)
     rotation = rotation_angle(cycle[:, :3, :3])

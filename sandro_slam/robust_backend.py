@@ -309,8 +309,8 @@ def _admitted(
     `_truncated` judges again.
     Returns the solution and the weights of the seed and admitted loops (1), the candidates of `_truncated`."""
     loops = _loop_indices(graph.size(), known_inliers)
-    outside = [(int(i), t) for i, t in zip(loops, thresholds) if weights[i] < 0.5]
-    if not outside:
+    outside = weights[loops] < 0.5
+    if not outside.any():
         return values, weights
     try:
         at_solution = covariances(weights, values)
@@ -319,10 +319,10 @@ def _admitted(
             at_solution = covariances(weights, values, floor=ADMISSION_INFORMATION_FLOOR)
         except ValueError:  # poses that only loops outside the seed hold: no covariance to test against
             return values, weights
-    indices, limits = (np.array(column) for column in zip(*outside))
+    indices = loops[outside]
     innovations = at_solution.mahalanobis([graph.at(int(i)) for i in indices], values, *scales, correlated=False)
     admitted = weights.copy()
-    admitted[indices[innovations <= limits]] = 1.0
+    admitted[indices[innovations <= thresholds[outside]]] = 1.0
     if np.array_equal(admitted, weights):
         return values, weights
     return refined(graph, values, admitted, relative_tol=SEED_RELATIVE_TOL), admitted
