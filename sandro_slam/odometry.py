@@ -95,11 +95,10 @@ class ScanOdometry(KissICP):
     With `gicp` enabled, each pose is then refined with VGICP against a map of Gaussian voxels
     (`GaussianMapRefiner`), and KISS-ICP's map and motion model take the refined pose.
 
-    Where the rotation rate steps by more than the second deskewing follows (a car into a corner whose yaw rate
-    stepped to 57 deg/s registered 0.35 deg beyond the straight prediction while it had turned 3.6 deg), the
-    pose lies far from its prediction compared with the scans before (`OffPredictionWatch`); the scan is then
-    deskewed with other rotations over its sweep, each registered and refined, and the one that fits KISS-ICP's
-    map best is kept (`sweep_rotation.best_sweep_rotation`)."""
+    Where the rotation rate steps by more than the second deskewing follows, the pose lies far from its
+    prediction compared with the scans before (`OffPredictionWatch`); the scan is then deskewed with other
+    rotations over its sweep, each registered and refined, and the one that fits KISS-ICP's map best is kept
+    (`sweep_rotation`)."""
 
     def __init__(self, config: KISSConfig, gicp: OdometryGicpConfig | None = None):
         super().__init__(config)
@@ -116,7 +115,8 @@ class ScanOdometry(KissICP):
             motion[:3, 3] = self.last_delta[:3, 3]
             scan = self._registered(frame, timestamps, motion, scan.pose, sigma)
         scan = self._refined(scan)
-        if self.watch.flags(prediction, scan.pose) and deskews:
+        far_off = self.watch.flags(prediction, scan.pose)  # every pose joins the watch's history
+        if far_off and deskews:
             map_fit = MapFit(self.local_map.point_cloud(), sigma)
             start = scan.pose
 
