@@ -200,8 +200,9 @@ def test_the_odometry_finds_the_turn_that_deskewing_with_the_prediction_lost(mon
     truth = sequence.poses_at([f.timestamp + f.times.max() for f in frames])
     config = SlamConfig().resolved()
     errors = {}
+    trigger = sweep_rotation.TRIGGER_RATIO
     for search in (False, True):
-        monkeypatch.setattr(sweep_rotation, "TRIGGER_RATIO", 5.0 if search else np.inf)
+        monkeypatch.setattr(sweep_rotation, "TRIGGER_RATIO", trigger if search else np.inf)
         odometry = ScanOdometry(config.odometry, config.odometry_gicp)
         poses = []
         for frame in frames:
