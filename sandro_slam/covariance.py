@@ -148,10 +148,9 @@ class FactorCovariances:
             jacobians.append(A)
             errors.append(b)
             columns.append(np.concatenate([self._columns(key) for key in keys]))
-        for ((m, k), dims), (positions, jacobians, errors, columns) in groups.items():
-            C = self._position[np.array(columns)]  # (factors, k)
-            rows, cols = np.maximum(C[:, :, None], C[:, None, :]), np.minimum(C[:, :, None], C[:, None, :])
-            sigma = _entries(self._indptr, self._indices, self._z, rows.ravel(), cols.ravel()).reshape(-1, k, k)
+        for ((m, _), dims), (positions, jacobians, errors, columns) in groups.items():
+            stacked = np.array(columns)  # (factors, k)
+            sigma = self._entries_at(stacked, stacked)
             if not correlated:
                 own = np.repeat(np.arange(len(dims)), dims)
                 sigma = np.where(own[:, None] == own[None, :], sigma, 0.0)
@@ -165,12 +164,18 @@ class FactorCovariances:
 
     def _gathered(self, rows: np.ndarray, cols: np.ndarray, what: str) -> np.ndarray:
         """The covariance entries at variable columns `rows` x `cols`; KeyError naming `what` off the pattern."""
-        rows, cols = self._position[rows], self._position[cols]
-        # Z is stored on and below its diagonal: each entry at (the larger, the smaller) of its two positions
-        z_rows, z_cols = np.maximum.outer(rows, cols), np.minimum.outer(rows, cols)
-        out = _entries(self._indptr, self._indices, self._z, z_rows.ravel(), z_cols.ravel())
+        out = self._entries_at(rows, cols)
         if np.isnan(out).any():
             raise KeyError(f"{what} is not on the factor's pattern")
+        return out
+
+    def _entries_at(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """The covariance entries at variable columns `rows` (..., m) x `cols` (..., n), as (..., m, n): stacks of
+        blocks alike; NaN off the pattern."""
+        rows, cols = self._position[rows][..., :, None], self._position[cols][..., None, :]
+        # Z is stored on and below its diagonal: each entry at (the larger, the smaller) of its two positions
+        z_rows, z_cols = np.maximum(rows, cols), np.minimum(rows, cols)
+        out = _entries(self._indptr, self._indices, self._z, z_rows.ravel(), z_cols.ravel())
         return out.reshape(z_rows.shape)
 
     def _columns(self, key: int) -> np.ndarray:
