@@ -6,7 +6,7 @@ from kiss_icp.kiss_icp import KissICP
 
 from pipelines.evaluation import align_se3, ate
 from pipelines.simulation import CityLayout, PolylineRoute, Route, build_city, make_sequence, simulate_sequence
-from pipelines.simulation.sensor import AVIA_LIKE, MID360_LIKE
+from pipelines.simulation.sensor import AVIA_LIKE, MID360_LIKE, Lidar, SpinningLidar
 from sandro_core.geometry import rotation_angle, transform_points
 from sandro_slam import LoopClosureModule, OfflineSlam, SlamConfig, sweep_rotation
 from sandro_slam.odometry import ScanOdometry
@@ -158,17 +158,19 @@ def test_a_drive_that_starts_in_motion_leaves_no_bent_first_keyframe():
     assert np.percentile(off_surface, 90) < 0.15  # 0.38 m when the first scans stay as KISS-ICP deskewed them
 
 
-@pytest.fixture(scope="module")
-def sharp_corners():
-    """A drive at 10 m/s into 10 m corners with no transition: the yaw rate steps to 57 deg/s. (frames, the
-    simulated sequence, whose `poses_at` gives the truth)."""
-    world = build_city(0)
+def _sharp_corners(lidar: Lidar = SpinningLidar()):
+    """A drive at 10 m/s into 10 m corners with no transition: the yaw rate steps to 57 deg/s, seen by `lidar`.
+    (frames, the simulated sequence, whose `poses_at` gives the truth)."""
     pitch = CityLayout().pitch
     corners = np.array([[20.0, 0.0], [pitch, 0.0], [pitch, pitch], [20.0, pitch]])
     route = PolylineRoute(corners, corner_radius=10.0, closed=False)
-    sequence = make_sequence(world, route, speed=10.0, accel_time=0.0, wobble_deg=0.3, seed=0)
-    frames = list(sequence.frames())
-    return frames, sequence
+    sequence = make_sequence(build_city(0), route, speed=10.0, accel_time=0.0, wobble_deg=0.3, seed=0, lidar=lidar)
+    return list(sequence.frames()), sequence
+
+
+@pytest.fixture(scope="module")
+def sharp_corners():
+    return _sharp_corners()
 
 
 def test_the_odometry_deskews_again_where_the_rotation_rate_steps(sharp_corners):
@@ -191,12 +193,7 @@ def test_the_odometry_finds_the_turn_that_deskewing_with_the_prediction_lost(mon
     # The Avia-like narrow view into the same corners: at each corner's first scan the registration of the scan
     # bent by the constant-velocity deskewing stays near the straight prediction; the search over sweep
     # rotations finds the turn.
-    world = build_city(0)
-    pitch = CityLayout().pitch
-    corners = np.array([[20.0, 0.0], [pitch, 0.0], [pitch, pitch], [20.0, pitch]])
-    route = PolylineRoute(corners, corner_radius=10.0, closed=False)
-    sequence = make_sequence(world, route, lidar=AVIA_LIKE, speed=10.0, accel_time=0.0, wobble_deg=0.3, seed=0)
-    frames = list(sequence.frames())
+    frames, sequence = _sharp_corners(lidar=AVIA_LIKE)
     truth = sequence.poses_at([f.timestamp + f.times.max() for f in frames])
     config = SlamConfig().resolved()
     errors = {}
