@@ -97,7 +97,7 @@ class ScanOdometry(KissICP):
 
     Where the rotation rate steps by more than the second deskewing follows, the pose lies far from its
     prediction compared with the scans before (`OffPredictionWatch`); the scan is then deskewed with other
-    rotations over its sweep, each registered, and the one that fits KISS-ICP's map best is kept and refined
+    rotations over its sweep, each registered and refined, and the one that fits KISS-ICP's map best is kept
     (`sweep_rotation`)."""
 
     def __init__(self, config: KISSConfig, gicp: OdometryGicpConfig | None = None):
@@ -152,24 +152,18 @@ class ScanOdometry(KissICP):
     def _sweep_searched(
         self, frame: np.ndarray, timestamps: np.ndarray, refined: RegisteredScan, sigma: float
     ) -> RegisteredScan:
-        """The scan deskewed with the sweep rotation that fits KISS-ICP's map best (`best_sweep_rotation`):
-        `refined` (the scan as registered before the search) where that is the prediction's, else the scan deskewed
-        with the rotation found, registered again from the trial's pose and refined. Each trial, the prediction's
-        rotation among them, registers every TRIAL_STRIDE-th point of its source from `refined`'s pose, so that
-        their fits compare alike."""
+        """The scan deskewed with the sweep rotation that fits KISS-ICP's map best (`best_sweep_rotation`), registered
+        and refined: `refined` where that is the prediction's. Each trial's registration takes every TRIAL_STRIDE-th
+        point of its source, from `refined`'s pose; the refinement after it takes them all."""
         map_fit = MapFit(self.local_map.point_cloud(), sigma)
+        stride = TRIAL_STRIDE if self.refiner is not None else 1
 
-        def trial(rotation_vector: np.ndarray) -> tuple[float, tuple[np.ndarray, np.ndarray]]:
+        def trial(rotation_vector: np.ndarray) -> tuple[float, RegisteredScan]:
             motion = turned(self.last_delta, rotation_vector)
-            scan = self._registered(frame, timestamps, motion, refined.pose, sigma, TRIAL_STRIDE)
-            return map_fit.cost(scan.source, scan.pose), (motion, scan.pose)
+            scan = self._refined(self._registered(frame, timestamps, motion, refined.pose, sigma, stride))
+            return map_fit.cost(scan.source, scan.pose), scan
 
-        first = trial(np.zeros(3))
-        best = best_sweep_rotation(first, trial)
-        if best is first[1]:
-            return refined
-        motion, pose = best
-        return self._refined(self._registered(frame, timestamps, motion, pose, sigma))
+        return best_sweep_rotation((map_fit.cost(refined.source, refined.pose), refined), trial)
 
 
 class KissIcpOdometry:
