@@ -18,7 +18,7 @@ from sandro_core.geometry import interpolate_poses, rotation_angle, transform_po
 from sandro_slam.config import OdometryGicpConfig, SlamConfig
 from sandro_slam.keyframes import voxel_downsample
 from sandro_slam.scan import Scan
-from sandro_slam.sweep_rotation import TRIAL_STRIDE, MapFit, OffPredictionWatch, best_sweep_rotation, turned
+from sandro_slam.sweep_rotation import MapFit, OffPredictionWatch, best_sweep_rotation, turned
 
 OdometryPose = tuple[float, np.ndarray, np.ndarray]  # (stamp [s], T_world_sensor, points in the sensor frame)
 MAX_HELD_SCANS = 300  # a start that stands still longer (30 s at 10 Hz) is not held back any further
@@ -115,8 +115,18 @@ class ScanOdometry(KissICP):
             motion[:3, 3] = self.last_delta[:3, 3]
             scan = self._registered(frame, timestamps, motion, scan.pose, sigma)
         scan = self._refined(scan)
-        if self.watch.flags(prediction, scan.pose) and deskews:  # every pose joins the watch's history
-            scan = self._sweep_searched(frame, timestamps, scan, sigma)
+        far_off = self.watch.flags(prediction, scan.pose)  # every pose joins the watch's history
+        if far_off and deskews:
+            map_fit = MapFit(self.local_map.point_cloud(), sigma)
+            start = scan.pose
+
+            def register(rotation_vector: np.ndarray) -> tuple[float, RegisteredScan]:
+                turned_scan = self._refined(
+                    self._registered(frame, timestamps, turned(self.last_delta, rotation_vector), start, sigma)
+                )
+                return map_fit.cost(turned_scan.source, turned_scan.pose), turned_scan
+
+            scan = best_sweep_rotation((map_fit.cost(scan.source, scan.pose), scan), register)
         if self.refiner is not None:
             self.refiner.insert(scan.gicp_cloud, scan.pose)
         pose, self.map_points = scan.pose, scan.map_points
@@ -127,19 +137,13 @@ class ScanOdometry(KissICP):
         return scan.deskewed, scan.source
 
     def _registered(
-        self,
-        frame: np.ndarray,
-        timestamps: np.ndarray,
-        motion: np.ndarray,
-        start: np.ndarray,
-        sigma: float,
-        stride: int = 1,
+        self, frame: np.ndarray, timestamps: np.ndarray, motion: np.ndarray, start: np.ndarray, sigma: float
     ) -> RegisteredScan:
         """The scan deskewed with `motion` (its sweep's, 4x4), voxelised and registered onto KISS-ICP's map from
-        `start` (T_world_sensor) with kernel `sigma` [m], every `stride`-th point of its source taking part."""
+        `start` (T_world_sensor) with kernel `sigma` [m]."""
         deskewed = self.preprocessor.preprocess(frame, timestamps, motion)
         source, map_points = self.voxelize(deskewed)
-        pose = self.registration.align_points_to_map(source[::stride], self.local_map, start, 3.0 * sigma, sigma)
+        pose = self.registration.align_points_to_map(source, self.local_map, start, 3.0 * sigma, sigma)
         return RegisteredScan(pose, deskewed, source, map_points)
 
     def _refined(self, scan: RegisteredScan) -> RegisteredScan:
@@ -148,22 +152,6 @@ class ScanOdometry(KissICP):
             return scan
         pose, cloud = self.refiner.align(scan.map_points, scan.pose)
         return RegisteredScan(pose, scan.deskewed, scan.source, scan.map_points, cloud)
-
-    def _sweep_searched(
-        self, frame: np.ndarray, timestamps: np.ndarray, refined: RegisteredScan, sigma: float
-    ) -> RegisteredScan:
-        """The scan deskewed with the sweep rotation that fits KISS-ICP's map best (`best_sweep_rotation`), registered
-        and refined: `refined` where that is the prediction's. Each trial's registration takes every TRIAL_STRIDE-th
-        point of its source, from `refined`'s pose; the refinement after it takes them all."""
-        map_fit = MapFit(self.local_map.point_cloud(), sigma)
-        stride = TRIAL_STRIDE if self.refiner is not None else 1
-
-        def trial(rotation_vector: np.ndarray) -> tuple[float, RegisteredScan]:
-            motion = turned(self.last_delta, rotation_vector)
-            scan = self._refined(self._registered(frame, timestamps, motion, refined.pose, sigma, stride))
-            return map_fit.cost(scan.source, scan.pose), scan
-
-        return best_sweep_rotation((map_fit.cost(refined.source, refined.pose), refined), trial)
 
 
 class KissIcpOdometry:
