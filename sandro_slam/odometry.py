@@ -18,7 +18,7 @@ from sandro_core.geometry import interpolate_poses, rotation_angle, transform_po
 from sandro_slam.config import OdometryGicpConfig, SlamConfig
 from sandro_slam.keyframes import voxel_downsample
 from sandro_slam.scan import Scan
-from sandro_slam.sweep_rotation import MapFit, OffPredictionWatch, best_sweep_rotation, turned
+from sandro_slam.sweep_rotation import TRIAL_STRIDE, MapFit, OffPredictionWatch, best_sweep_rotation, turned
 
 OdometryPose = tuple[float, np.ndarray, np.ndarray]  # (stamp [s], T_world_sensor, points in the sensor frame)
 MAX_HELD_SCANS = 300  # a start that stands still longer (30 s at 10 Hz) is not held back any further
@@ -97,8 +97,8 @@ class ScanOdometry(KissICP):
 
     Where the rotation rate steps by more than the second deskewing follows, the pose lies far from its
     prediction compared with the scans before (`OffPredictionWatch`); the scan is then deskewed with other
-    rotations over its sweep, each registered and refined, and the one that fits KISS-ICP's map best is kept
-    (`sweep_rotation`)."""
+    rotations over its sweep, each registered, and the one that fits KISS-ICP's map best is refined and kept
+    where it still fits better than the prediction's (`sweep_rotation`)."""
 
     def __init__(self, config: KISSConfig, gicp: OdometryGicpConfig | None = None):
         super().__init__(config)
@@ -115,18 +115,8 @@ class ScanOdometry(KissICP):
             motion[:3, 3] = self.last_delta[:3, 3]
             scan = self._registered(frame, timestamps, motion, scan.pose, sigma)
         scan = self._refined(scan)
-        far_off = self.watch.flags(prediction, scan.pose)  # every pose joins the watch's history
-        if far_off and deskews:
-            map_fit = MapFit(self.local_map.point_cloud(), sigma)
-            start = scan.pose
-
-            def register(rotation_vector: np.ndarray) -> tuple[float, RegisteredScan]:
-                turned_scan = self._refined(
-                    self._registered(frame, timestamps, turned(self.last_delta, rotation_vector), start, sigma)
-                )
-                return map_fit.cost(turned_scan.source, turned_scan.pose), turned_scan
-
-            scan = best_sweep_rotation((map_fit.cost(scan.source, scan.pose), scan), register)
+        if self.watch.flags(prediction, scan.pose) and deskews:  # every pose joins the watch's history
+            scan = self._sweep_searched(frame, timestamps, scan, sigma)
         if self.refiner is not None:
             self.refiner.insert(scan.gicp_cloud, scan.pose)
         pose, self.map_points = scan.pose, scan.map_points
@@ -137,13 +127,19 @@ class ScanOdometry(KissICP):
         return scan.deskewed, scan.source
 
     def _registered(
-        self, frame: np.ndarray, timestamps: np.ndarray, motion: np.ndarray, start: np.ndarray, sigma: float
+        self,
+        frame: np.ndarray,
+        timestamps: np.ndarray,
+        motion: np.ndarray,
+        start: np.ndarray,
+        sigma: float,
+        stride: int = 1,
     ) -> RegisteredScan:
         """The scan deskewed with `motion` (its sweep's, 4x4), voxelised and registered onto KISS-ICP's map from
-        `start` (T_world_sensor) with kernel `sigma` [m]."""
+        `start` (T_world_sensor) with kernel `sigma` [m], every `stride`-th point of its source taking part."""
         deskewed = self.preprocessor.preprocess(frame, timestamps, motion)
         source, map_points = self.voxelize(deskewed)
-        pose = self.registration.align_points_to_map(source, self.local_map, start, 3.0 * sigma, sigma)
+        pose = self.registration.align_points_to_map(source[::stride], self.local_map, start, 3.0 * sigma, sigma)
         return RegisteredScan(pose, deskewed, source, map_points)
 
     def _refined(self, scan: RegisteredScan) -> RegisteredScan:
@@ -152,6 +148,32 @@ class ScanOdometry(KissICP):
             return scan
         pose, cloud = self.refiner.align(scan.map_points, scan.pose)
         return RegisteredScan(pose, scan.deskewed, scan.source, scan.map_points, cloud)
+
+    def _sweep_searched(
+        self, frame: np.ndarray, timestamps: np.ndarray, refined: RegisteredScan, sigma: float
+    ) -> RegisteredScan:
+        """The scan deskewed with the sweep rotation that fits KISS-ICP's map best (`best_sweep_rotation`).
+
+        Each trial, the prediction's rotation among them, registers every TRIAL_STRIDE-th point of its source from
+        `refined`'s pose (the scan as registered before the search), so that their fits compare alike. The rotation
+        found, where it is not the prediction's, is registered again with every point and refined, and kept where
+        it then fits the map better than `refined`: unrefined, a Mid-360-like walker's trials follow its scan
+        pattern (see `GaussianMapRefiner`) and a turned rotation can fit best without being better."""
+        map_fit = MapFit(self.local_map.point_cloud(), sigma)
+
+        def trial(rotation_vector: np.ndarray) -> tuple[float, tuple[np.ndarray, np.ndarray]]:
+            motion = turned(self.last_delta, rotation_vector)
+            scan = self._registered(frame, timestamps, motion, refined.pose, sigma, TRIAL_STRIDE)
+            return map_fit.cost(scan.source, scan.pose), (motion, scan.pose)
+
+        first = trial(np.zeros(3))
+        best = best_sweep_rotation(first, trial)
+        if best is first[1]:
+            return refined
+        motion, pose = best
+        turned_scan = self._refined(self._registered(frame, timestamps, motion, pose, sigma))
+        better = map_fit.cost(turned_scan.source, turned_scan.pose) < map_fit.cost(refined.source, refined.pose)
+        return turned_scan if better else refined
 
 
 class KissIcpOdometry:

@@ -23,6 +23,8 @@ TRIGGER_RATIO = 5.0  # search when a pose lies this many times farther from its 
 HISTORY = 20  # scans whose distance from their prediction makes that median
 STEP_DEG = 3.0  # the rotation over a sweep tried beyond the prediction's about each sensor axis, both ways;
 # the best is then tried at half and at twice that
+TRIAL_STRIDE = 3  # each trial registers every this-th point of its source (a third of the cost); the rotation
+# kept is registered again with all of them
 
 Fit = TypeVar("Fit")
 
