@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,8 +129,22 @@ def _icp(
     """Point-to-plane ICP (the target with normals) from T; (the transform, its fitness: the overlap)."""
     method = o3d.pipelines.registration.TransformationEstimationPointToPlane()
     criteria = o3d.pipelines.registration.ICPConvergenceCriteria(ICP_RELATIVE_TOLERANCE, ICP_RELATIVE_TOLERANCE)
-    icp = o3d.pipelines.registration.registration_icp(source, target, config.icp_max_distance, T, method, criteria)
+    with _open3d_on_one_thread():
+        icp = o3d.pipelines.registration.registration_icp(source, target, config.icp_max_distance, T, method, criteria)
     return np.asarray(icp.transformation), icp.fitness
+
+
+@contextmanager
+def _open3d_on_one_thread() -> Iterator[None]:
+    """Open3D on one thread while the block runs. Its ICP adds up the threads' shares of the normal equations in
+    the order the threads finish, so that on several threads the same input ends 1e-16 apart from run to run, and
+    the loops' verdicts and the graph after them can differ; on one thread every run gives the same result."""
+    saved = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        yield
+    finally:
+        o3d.utility.set_max_threads(saved)
 
 
 def _rejected(reason: str, start: float, T: np.ndarray | None = None) -> PairRegistration:

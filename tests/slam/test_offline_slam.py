@@ -1,5 +1,8 @@
 """sandro_slam: loops on a simulated drive, false loops, batch vs incremental, bad input."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from kiss_icp.kiss_icp import KissICP
@@ -9,6 +12,7 @@ from pipelines.simulation import CityLayout, PolylineRoute, Route, build_city, m
 from pipelines.simulation.sensor import AVIA_LIKE, MID360_LIKE, Lidar, SpinningLidar
 from sandro_core.geometry import rotation_angle, transform_points
 from sandro_slam import LoopClosureModule, OfflineSlam, SlamConfig, sweep_rotation
+from sandro_slam.background import worker_environment
 from sandro_slam.odometry import ScanOdometry
 
 
@@ -93,6 +97,24 @@ def test_offline_slam_single_frame_and_no_points():
         OfflineSlam().run([(0.0, np.zeros((5, 2)))])
     with pytest.raises(ValueError, match="frame 0: 4 per-point times for 5 points"):
         OfflineSlam().run([(0.0, np.zeros((5, 3)), np.zeros(4))])
+
+
+def test_the_same_frames_give_the_same_result_with_kiss_icp_on_one_thread():
+    # On several threads KISS-ICP adds up its normal equations in the order its threads finish: runs then differ
+    # by about 1e-12 m a scan. Its thread count holds from the first registration a process makes: a fresh one.
+    script = """
+import numpy as np
+from pipelines.simulation import simulate_sequence
+from sandro_slam import OfflineSlam, SlamConfig
+frames = list(simulate_sequence(seed=0, frames=30).frames())
+config = SlamConfig()
+config.odometry.registration.max_num_threads = 1
+first, again = OfflineSlam(config).run(frames), OfflineSlam(config).run(frames)
+np.testing.assert_array_equal(again.odometry_poses, first.odometry_poses)
+np.testing.assert_array_equal(again.poses, first.poses)
+"""
+    run = subprocess.run([sys.executable, "-c", script], env=worker_environment(), capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
 
 
 def _first_pose_error(poses: np.ndarray, truth: np.ndarray) -> float:
