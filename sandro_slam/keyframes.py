@@ -16,6 +16,7 @@ STEADY_DEG = 0.5  # [deg] a change of rotation between consecutive scans' motion
 RECENT = 20  # scans whose changes of rotation set a steady one too: the walker's sway changes it on every scan
 STEADY_QUANTILE = 75  # [%] of those changes: a scan steady on both sides is then about every other one under sway
 ANCHOR_SCANS = 6  # a keyframe's frame is the pose of one of its first this many scans
+FOLD_SCANS = 100  # a keyframe holding this many scans' points folds them into its submap (a standstill's bound)
 
 
 @dataclass
@@ -51,16 +52,23 @@ def cropped(points: np.ndarray, radius: float) -> np.ndarray:
 
 
 def submap_points(
-    T_world_keyframe: np.ndarray, T_world_scans: list[np.ndarray], scans: list[np.ndarray], config: KeyframeConfig
+    T_world_keyframe: np.ndarray,
+    T_world_scans: list[np.ndarray],
+    scans: list[np.ndarray],
+    config: KeyframeConfig,
+    folded: np.ndarray | None = None,
 ) -> np.ndarray:
     """A keyframe's submap [m, keyframe frame]: every scan (N_i, 3) [m, sensor frame], moved by its T_world_scan
-    into the keyframe frame and cropped to `submap_radius`, all voxelised at `submap_voxel`."""
+    into the keyframe frame and cropped to `submap_radius`, all voxelised at `submap_voxel`. `folded`: the submap
+    of the keyframe's earlier scans, whose voxels keep their points (the first point of a voxel stays)."""
     T_keyframe_world = np.linalg.inv(T_world_keyframe)
     moved = [
         cropped(transform_points(T_keyframe_world @ T_world_scan, points), config.submap_radius)
         for T_world_scan, points in zip(T_world_scans, scans)
     ]
-    return voxel_downsample(np.concatenate(moved), config.submap_voxel)
+    return voxel_downsample(
+        np.concatenate([np.empty((0, 3)) if folded is None else folded, *moved]), config.submap_voxel
+    )
 
 
 class KeyframeBuilder:
@@ -78,13 +86,19 @@ class KeyframeBuilder:
 
     The scans are moved into the keyframe frame and cropped to `submap_radius` when the keyframe closes; one
     voxelisation of them all keeps the first point of every voxel. Scans come voxelised already (`Frontend`
-    passes the scan KISS-ICP voxelised for its own map), which keeps the points to move few.
+    passes the scan KISS-ICP voxelised for its own map), which keeps the points to move few. A keyframe that
+    holds FOLD_SCANS scans' points (the sensor standing still: a car at a light, a robot parked while the recording
+    goes on) fixes its anchor and folds them into its submap, which then grows only by what new scans add: the
+    same points as one voxelisation at the end, in bounded memory.
     """
 
     def __init__(self, config: KeyframeConfig):
         self.config = config
         self._key: int | None = None  # the current keyframe's
-        self._scans: list[_HeldScan] = []  # the current keyframe's
+        self._scans: list[_HeldScan] = []  # the current keyframe's; the points of folded ones dropped
+        self._held = 0  # of those scans, how many still hold their points
+        self._folded: np.ndarray | None = None  # the submap of the folded scans, in the fixed anchor's frame
+        self._anchor_index: int | None = None  # fixed at the first fold
         self._changes: deque[float] = deque(maxlen=RECENT)  # [rad] of the latest scans
         self._last_pose: np.ndarray | None = None
         self._last_motion: np.ndarray | None = None
@@ -121,6 +135,9 @@ class KeyframeBuilder:
         self._scans.append(
             _HeldScan(frame_index, T_world_scan, np.array(points, dtype=np.float64), self._travelled, change)
         )
+        self._held += 1
+        if self._held >= FOLD_SCANS:
+            self._fold()
         return completed
 
     def flush(self) -> Keyframe | None:
@@ -135,14 +152,27 @@ class KeyframeBuilder:
         """The current keyframe, closed; `next_change`: the change of rotation [rad] at the scan after its last."""
         if self._key is None:
             return None
-        anchor = self._scans[self._anchor(next_change)]
-        points = submap_points(
-            anchor.T_world_scan, [scan.T_world_scan for scan in self._scans], [scan.points for scan in self._scans],
-            self.config,
-        )  # fmt: skip
-        keyframe = Keyframe(self._key, anchor.T_world_scan, anchor.frame_index, anchor.travelled, points)
-        self._key, self._scans = None, []
+        anchor = self._scans[self._anchor(next_change) if self._anchor_index is None else self._anchor_index]
+        keyframe = Keyframe(self._key, anchor.T_world_scan, anchor.frame_index, anchor.travelled, self._submap(anchor))
+        self._key, self._scans, self._held, self._folded, self._anchor_index = None, [], 0, None, None
         return keyframe
+
+    def _fold(self) -> None:
+        """Fix the anchor and fold the points of the scans held into the submap (see the class docstring)."""
+        if self._anchor_index is None:
+            self._anchor_index = self._anchor(np.inf)  # with FOLD_SCANS > ANCHOR_SCANS the scan after is known
+        self._folded = self._submap(self._scans[self._anchor_index])
+        first_held = len(self._scans) - self._held
+        self._scans[first_held:] = [scan._replace(points=np.empty((0, 3))) for scan in self._scans[first_held:]]
+        self._held = 0
+
+    def _submap(self, anchor: _HeldScan) -> np.ndarray:
+        """The submap [m, the anchor's frame] of the folded scans and of the scans held (the latest ones)."""
+        held = self._scans[len(self._scans) - self._held :]
+        return submap_points(
+            anchor.T_world_scan, [scan.T_world_scan for scan in held], [scan.points for scan in held], self.config,
+            self._folded,
+        )  # fmt: skip
 
     def _anchor(self, next_change: float) -> int:
         """Index into the current scans of the keyframe's anchor (see the class docstring)."""

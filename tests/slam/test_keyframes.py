@@ -1,7 +1,8 @@
-"""KeyframeBuilder: where keyframes start and what their submaps hold; place recognition: MapClosures' spacing and
-pickling, ring keys."""
+"""KeyframeBuilder: where keyframes start, what their submaps hold, a standstill folded; place recognition:
+MapClosures' spacing and pickling, ring keys."""
 
 import pickle
+import tracemalloc
 
 import gtsam
 import numpy as np
@@ -10,6 +11,7 @@ from scipy.spatial import cKDTree
 
 from pipelines.simulation import simulate_sequence
 from sandro_core.geometry import transform_points
+from sandro_slam import keyframes
 from sandro_slam.candidates import PlaceRecognition, RingKeyRecognition, radius_candidates, span_centres
 from sandro_slam.config import KeyframeConfig, LoopDetectionConfig, SlamConfig
 from sandro_slam.keyframes import ANCHOR_SCANS, KeyframeBuilder
@@ -108,6 +110,41 @@ class _Recorder:
     def get_closures(self, key, points):
         self.seen.append(key)
         return []
+
+
+def _standstill(builder: KeyframeBuilder, scans: int, seed: int = 0) -> list:
+    """A sensor that moves 0.5 m, then stands still (its pose jittering by a few mm and mrad) for `scans` scans
+    of one scene, each a new sample of 5000 of its points; returns the keyframes closed, the last flushed."""
+    rng = np.random.default_rng(seed)
+    scene = rng.uniform(-20.0, 20.0, size=(20000, 3))
+    completed = []
+    for index in range(scans):
+        T = _pose(0.5 * min(index, 1) + rng.normal(0.0, 0.003), yaw_deg=rng.normal(0.0, 0.1))
+        seen = scene[rng.choice(len(scene), 5000, replace=False)]
+        completed.append(builder.add_scan(index, T, (seen - T[:3, 3]) @ T[:3, :3]))
+    return [keyframe for keyframe in [*completed, builder.flush()] if keyframe is not None]
+
+
+def test_a_standstill_folds_its_scans_into_the_same_submap(monkeypatch):
+    config = KeyframeConfig(distance=10.0, angle_deg=30.0, submap_voxel=0.5, submap_radius=30.0)
+    scans = int(3.5 * keyframes.FOLD_SCANS)
+    (folded,) = _standstill(KeyframeBuilder(config), scans)
+    monkeypatch.setattr(keyframes, "FOLD_SCANS", 10**9)
+    (whole,) = _standstill(KeyframeBuilder(config), scans)
+    assert folded.anchor_frame == whole.anchor_frame
+    np.testing.assert_array_equal(folded.T_world_keyframe, whole.T_world_keyframe)
+    np.testing.assert_array_equal(np.unique(folded.points, axis=0), np.unique(whole.points, axis=0))
+
+
+def test_a_standstill_holds_no_more_than_fold_scans_of_points():
+    config = KeyframeConfig(distance=10.0, angle_deg=30.0, submap_voxel=0.5, submap_radius=30.0)
+    scan_bytes = 5000 * 3 * 8
+    tracemalloc.start()
+    _standstill(KeyframeBuilder(config), 4 * keyframes.FOLD_SCANS)
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    # the scans held, and their moved copies while they fold: about 3 x FOLD_SCANS scans (without folding, 12)
+    assert peak < 4 * keyframes.FOLD_SCANS * scan_bytes
 
 
 def test_radius_candidates_are_the_keyframes_whose_submaps_cover_the_same_stretch():
