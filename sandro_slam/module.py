@@ -14,6 +14,11 @@ from sandro_slam.factors import between_factor, odometry_covariance
 from sandro_slam.loop_registration import MIN_SUBMAP_POINTS, SubmapDescription, describe_submap, register_submaps
 from sandro_slam.pose_graph import LoopFactor, PoseGraph
 
+# Submap descriptions kept at once, the most recently used: about 2 MB each at street scale (FPFH keypoints and
+# descriptors, the ICP points with normals, the descriptor tree). One evicted is made again from its submap
+# (about 40 ms) when a later candidate pair needs it.
+MAX_DESCRIPTIONS = 200
+
 
 @dataclass
 class LoopClosure:
@@ -59,7 +64,7 @@ class LoopCloser:
         self.config = (config or SlamConfig()).resolved()
         self.attempts = 0  # candidate pairs registered
         self._submaps: dict[int, np.ndarray] = {}  # keyframe submaps (points in the keyframe frame) by key
-        self._descriptions: dict[int, SubmapDescription] = {}  # of the submaps, made once each
+        self._descriptions: dict[int, SubmapDescription] = {}  # of the submaps, least recently used first
         self._estimates: dict[int, np.ndarray] = {}  # current T_world_keyframe by key
         self._travelled: dict[int, float] = {}  # path length [m] at each keyframe
         self._last_key: int | None = None
@@ -146,9 +151,12 @@ class LoopCloser:
         return bool(np.linalg.norm(T_target_source[:3, 3] - estimate[:3, 3]) <= bound)
 
     def _description(self, key: int) -> SubmapDescription:
-        description = self._descriptions.get(key)
+        description = self._descriptions.pop(key, None)
         if description is None:
-            description = self._descriptions[key] = describe_submap(self._submaps[key], self.config.registration)
+            description = describe_submap(self._submaps[key], self.config.registration)
+            if len(self._descriptions) >= MAX_DESCRIPTIONS:
+                del self._descriptions[next(iter(self._descriptions))]
+        self._descriptions[key] = description  # the most recently used last
         return description
 
 
