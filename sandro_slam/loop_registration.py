@@ -129,16 +129,17 @@ def _icp(
     """Point-to-plane ICP (the target with normals) from T; (the transform, its fitness: the overlap)."""
     method = o3d.pipelines.registration.TransformationEstimationPointToPlane()
     criteria = o3d.pipelines.registration.ICPConvergenceCriteria(ICP_RELATIVE_TOLERANCE, ICP_RELATIVE_TOLERANCE)
-    with _open3d_on_one_thread():
+    with open3d_on_one_thread():
         icp = o3d.pipelines.registration.registration_icp(source, target, config.icp_max_distance, T, method, criteria)
     return np.asarray(icp.transformation), icp.fitness
 
 
 @contextmanager
-def _open3d_on_one_thread() -> Iterator[None]:
-    """Open3D on one thread while the block runs. Its ICP adds up the threads' shares of the normal equations in
-    the order the threads finish, so that on several threads the same input ends 1e-16 apart from run to run, and
-    the loops' verdicts and the graph after them can differ; on one thread every run gives the same result."""
+def open3d_on_one_thread() -> Iterator[None]:
+    """Open3D on one thread while the block runs (its previous limit restored after it). On several threads its ICP
+    adds up the threads' shares of the normal equations in the order they finish, so that the same input ends 1e-16
+    apart from run to run, and the loops' verdicts and the graph after them can differ; on one thread every run
+    gives the same result."""
     saved = o3d.utility.get_max_threads()
     o3d.utility.set_max_threads(1)
     try:

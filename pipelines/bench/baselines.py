@@ -8,14 +8,14 @@ an inlier, and the 4x4 result maps source points into the target frame.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from functools import partial
 
 import numpy as np
 import open3d as o3d
 
 from sandro_core.geometry import rigid_fit, transform_points
+from sandro_slam.loop_registration import open3d_on_one_thread
 
 try:
     import kiss_matcher as _kiss_matcher
@@ -55,23 +55,12 @@ def _open3d_inputs(
     )
 
 
-@contextmanager
-def _open3d_single_thread() -> Iterator[None]:
-    """Limit Open3D to one thread inside the block (restoring the previous limit after it)."""
-    previous = o3d.utility.get_max_threads()
-    o3d.utility.set_max_threads(1)
-    try:
-        yield
-    finally:
-        o3d.utility.set_max_threads(previous)
-
-
 def _ransac(source: np.ndarray, target: np.ndarray, noise_bound: float, max_iteration: int) -> np.ndarray:
     """Open3D's threads draw samples from one shared RNG, so the seed alone does not fix the result:
     it runs single-threaded (on 2 cores measured no slower, the shared RNG being contended anyway)."""
     source, target = _check(source, target, noise_bound)
     registration = o3d.pipelines.registration
-    with _open3d_single_thread():
+    with open3d_on_one_thread():
         o3d.utility.random.seed(OPEN3D_SEED)
         result = registration.registration_ransac_based_on_correspondence(
             *_open3d_inputs(source, target),
