@@ -14,7 +14,7 @@ from sandro_slam.factors import between_factor, odometry_covariance
 from sandro_slam.loop_registration import MIN_SUBMAP_POINTS, SubmapDescription, describe_submap, register_submaps
 from sandro_slam.pose_graph import LoopFactor, PoseGraph
 
-# Submap descriptions kept at once, the most recently used: about 2 MB each at street scale (FPFH keypoints and
+# Submap descriptions kept at once, the most recently used: 1.3-2 MB each at street scale (FPFH keypoints and
 # descriptors, the ICP points with normals, the descriptor tree). One evicted is made again from its submap
 # (about 40 ms) when a later candidate pair needs it.
 MAX_DESCRIPTIONS = 200
