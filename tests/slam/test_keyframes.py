@@ -11,10 +11,9 @@ from scipy.spatial import cKDTree
 
 from pipelines.simulation import simulate_sequence
 from sandro_core.geometry import transform_points
-from sandro_slam import keyframes
 from sandro_slam.candidates import PlaceRecognition, RingKeyRecognition, radius_candidates, span_centres
 from sandro_slam.config import KeyframeConfig, LoopDetectionConfig, SlamConfig
-from sandro_slam.keyframes import ANCHOR_SCANS, KeyframeBuilder
+from sandro_slam.keyframes import ANCHOR_SCANS, FOLD_SCANS, KeyframeBuilder
 
 REFERENCE = SlamConfig().resolved()  # every length at its reference value
 
@@ -127,9 +126,9 @@ def _standstill(builder: KeyframeBuilder, scans: int, seed: int = 0) -> list:
 
 def test_a_standstill_folds_its_scans_into_the_same_submap(monkeypatch):
     config = KeyframeConfig(distance=10.0, angle_deg=30.0, submap_voxel=0.5, submap_radius=30.0)
-    scans = int(3.5 * keyframes.FOLD_SCANS)
+    scans = int(3.5 * FOLD_SCANS)
     (folded,) = _standstill(KeyframeBuilder(config), scans)
-    monkeypatch.setattr(keyframes, "FOLD_SCANS", 10**9)
+    monkeypatch.setattr("sandro_slam.keyframes.FOLD_SCANS", 10**9)
     (whole,) = _standstill(KeyframeBuilder(config), scans)
     assert folded.anchor_frame == whole.anchor_frame
     np.testing.assert_array_equal(folded.T_world_keyframe, whole.T_world_keyframe)
@@ -140,11 +139,11 @@ def test_a_standstill_holds_no_more_than_fold_scans_of_points():
     config = KeyframeConfig(distance=10.0, angle_deg=30.0, submap_voxel=0.5, submap_radius=30.0)
     scan_bytes = 5000 * 3 * 8
     tracemalloc.start()
-    _standstill(KeyframeBuilder(config), 4 * keyframes.FOLD_SCANS)
+    _standstill(KeyframeBuilder(config), 4 * FOLD_SCANS)
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     # the scans held, and their moved copies while they fold: about 3 x FOLD_SCANS scans (without folding, 12)
-    assert peak < 4 * keyframes.FOLD_SCANS * scan_bytes
+    assert peak < 4 * FOLD_SCANS * scan_bytes
 
 
 def test_radius_candidates_are_the_keyframes_whose_submaps_cover_the_same_stretch():

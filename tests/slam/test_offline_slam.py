@@ -11,7 +11,7 @@ from pipelines.evaluation import align_se3, ate
 from pipelines.simulation import CityLayout, PolylineRoute, Route, build_city, make_sequence, simulate_sequence
 from pipelines.simulation.sensor import AVIA_LIKE, MID360_LIKE, Lidar, SpinningLidar
 from sandro_core.geometry import rotation_angle, transform_points
-from sandro_slam import LoopClosureModule, OfflineSlam, SlamConfig, module, sweep_rotation
+from sandro_slam import LoopClosureModule, OfflineSlam, SlamConfig, sweep_rotation
 from sandro_slam.background import worker_environment
 from sandro_slam.odometry import ScanOdometry
 
@@ -53,7 +53,7 @@ def test_loop_measurements_match_the_truth(drive, batch_run):
 
 
 def test_a_module_that_keeps_two_submap_descriptions_closes_the_same_loops(drive, batch_run, monkeypatch):
-    monkeypatch.setattr(module, "MAX_DESCRIPTIONS", 2)
+    monkeypatch.setattr("sandro_slam.module.MAX_DESCRIPTIONS", 2)
     few, poses = _run_module(drive, "batch")
     reference, reference_poses = batch_run
     assert len(few.closer._descriptions) == 2
