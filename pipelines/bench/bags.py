@@ -1,5 +1,6 @@
-"""The bag part of `sandro-bench slam`: the simulated drive written as a bag in each format and run end to end
-through `sandro-slam`'s `run_input`, and how much faster than real time `BagScans` reads a 64-beam-sized bag."""
+"""The bag part of `sandro-bench slam`: the simulated drive written as a bag in each format (and as a ROS1 bag of
+Livox CustomMsg) and run end to end through `sandro-slam`'s `run_input`, and how much faster than real time
+`BagScans` reads a 64-beam-sized bag."""
 
 from __future__ import annotations
 
@@ -35,18 +36,19 @@ def _ouster_like_scans(count: int, seed: int) -> Iterator[Scan]:
         yield Scan(1_700_000_000.0 + index / RATE, ranges[:, None] * directions, times)
 
 
-def bag_read_speed(folder: Path, fmt: str, scans: int = 100, seed: int = 0) -> dict:
-    """Write a bag of `scans` Ouster-like scans (64 x 2048 points, ouster-ros layout: point_step 48, t in ns)
-    in format `fmt` into `folder`, time opening it and iterating `BagScans` over it (read + decode, the bag
-    being in the page cache just after writing), then remove the bag (~6.3 MB per scan).
+def bag_read_speed(folder: Path, fmt: str, scans: int = 100, seed: int = 0, message: str = "pointcloud2") -> dict:
+    """Write a bag of `scans` Ouster-like scans (64 x 2048 points; as PointCloud2 in the ouster-ros layout:
+    point_step 48, t in ns; or as Livox CustomMsg, `message` "livox") in format `fmt` into `folder`, time opening
+    it and iterating `BagScans` over it (read + decode, the bag being in the page cache just after writing), then
+    remove the bag (~6.3 MB per scan).
 
-    Returns {"format", "scans", "points_per_scan", "read_s", "realtime_factor"}: the factor is the bag's
-    duration at 10 Hz over read_s.
+    Returns {"format", "message", "scans", "points_per_scan", "read_s", "realtime_factor"}: the factor is the
+    bag's duration at 10 Hz over read_s.
     """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     path = bag_path(folder, "bag_read_speed", fmt)
-    write_bag(path, fmt, _ouster_like_scans(scans, seed), layout="ouster", overwrite=True)
+    write_bag(path, fmt, _ouster_like_scans(scans, seed), layout="ouster", overwrite=True, message=message)
     try:
         start = time.perf_counter()
         points = 0
@@ -58,6 +60,7 @@ def bag_read_speed(folder: Path, fmt: str, scans: int = 100, seed: int = 0) -> d
         delete_bag(path)
     return {
         "format": fmt,
+        "message": message,
         "scans": scans,
         "points_per_scan": BEAMS * COLUMNS,
         "read_s": read_s,
@@ -74,35 +77,38 @@ def bag_experiment(
     frames: int | None,
     formats: tuple[str, ...] = FORMATS,
     read_scans: int = 100,
+    livox: bool = True,
 ) -> dict[str, float]:
-    """Per format: write the drive as a bag (in out/bags, removed afterwards), run `run_input` with the ground
-    truth, and report its ATE before/after loop closure, frames/s and the share of the run spent reading the bag;
-    then the reading speed of a 64 x 2048-point, 10 Hz bag of `read_scans` scans as a multiple of real time."""
+    """Per format (and, with `livox`, a ROS1 bag of Livox CustomMsg, named "ros1_livox"): write the drive as a
+    bag (in out/bags, removed afterwards), run `run_input` with the ground truth, and report its ATE before/after
+    loop closure, frames/s and the share of the run spent reading the bag; then the reading speed of a 64 x
+    2048-point, 10 Hz bag of `read_scans` scans as a multiple of real time."""
+    variants = [(fmt, "pointcloud2", fmt) for fmt in formats] + [("ros1", "livox", "ros1_livox")] * livox
     metrics: dict[str, float] = {}
     folder = out / "bags"
     folder.mkdir(parents=True, exist_ok=True)
     try:
-        for fmt in formats:
+        for fmt, message, name in variants:
             bag = bag_path(folder, "drive", fmt)
-            print(f"bag {fmt}: simulating, then sandro-slam ...", flush=True)
-            simulate(bag, fmt, seed=seed, laps=laps, frames=frames, overwrite=True)
+            print(f"bag {name}: simulating, then sandro-slam ...", flush=True)
+            simulate(bag, fmt, seed=seed, laps=laps, frames=frames, overwrite=True, message=message)
             _, run = run_input(
                 bag,
-                out / f"sandro-slam_{fmt}",
+                out / f"sandro-slam_{name}",
                 config,
                 ground_truth=read_trajectory(ground_truth_path(bag)),
                 progress=True,
             )
-            metrics[f"bag_{fmt}_ate_kiss_icp"] = run["ground_truth"]["ate_odometry_m"]
-            metrics[f"bag_{fmt}_ate_sandro_slam"] = run["ground_truth"]["ate_slam_m"]
-            metrics[f"bag_{fmt}_fps"] = run["frames_per_s"]
-            metrics[f"bag_{fmt}_read_share"] = run["read_s"] / run["wall_s"]
+            metrics[f"bag_{name}_ate_kiss_icp"] = run["ground_truth"]["ate_odometry_m"]
+            metrics[f"bag_{name}_ate_sandro_slam"] = run["ground_truth"]["ate_slam_m"]
+            metrics[f"bag_{name}_fps"] = run["frames_per_s"]
+            metrics[f"bag_{name}_read_share"] = run["read_s"] / run["wall_s"]
             delete_bag(bag)  # ~350 MB each
             ground_truth_path(bag).unlink()
-        for fmt in formats:
-            print(f"bag {fmt}: reading speed of a 64-beam bag ...", flush=True)
-            speed = bag_read_speed(folder, fmt, read_scans)
-            metrics[f"bag_{fmt}_read_realtime_factor_64beam"] = speed["realtime_factor"]
+        for fmt, message, name in variants:
+            print(f"bag {name}: reading speed of a 64-beam bag ...", flush=True)
+            speed = bag_read_speed(folder, fmt, read_scans, message=message)
+            metrics[f"bag_{name}_read_realtime_factor_64beam"] = speed["realtime_factor"]
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     return metrics

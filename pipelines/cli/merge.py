@@ -40,7 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--out", type=Path, required=True, help="output folder (new or empty)")
     parser.add_argument("--config", type=Path, help="SlamConfig YAML (its merge section; default: built-in values)")
-    parser.add_argument("--topic", help="PointCloud2 topic of bags given as sessions")
+    parser.add_argument("--topic", help="point cloud topic (PointCloud2 or Livox CustomMsg) of bags given as sessions")
     parser.add_argument("--workers", type=int, default=1, help="submap descriptions and pair registrations at once "
                         "on a local Ray (default 1: in this process; more needs pip install '.[cluster]')")  # fmt: skip
     parser.add_argument("--ray", metavar="ADDRESS", help="run them on an existing Ray cluster ('auto': the one this "

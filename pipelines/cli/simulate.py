@@ -1,10 +1,11 @@
-"""`sandro-simulate`: write a simulated LiDAR drive as a ROS bag of sensor_msgs/PointCloud2 or as a folder of scans,
-with its ground truth.
+"""`sandro-simulate`: write a simulated LiDAR drive as a ROS bag or as a folder of scans, with its ground truth.
 
 The drive is `pipelines.simulation.simulate_sequence`: a 32-beam spinning LiDAR at 10 Hz through a seeded city
-of repeated and mirror-symmetric blocks, raw (not deskewed) points with range noise. In a bag each message holds
-x, y, z (float32) and t (uint32, ns after header.stamp, the Ouster convention) in the sensor frame; header.stamp is
-the sweep start. Folders (OUT a folder):
+of repeated and mirror-symmetric blocks, raw (not deskewed) points with range noise. In a bag each message is a
+sensor_msgs/PointCloud2 of x, y, z (float32) and t (uint32, ns after header.stamp, the Ouster convention) in the
+sensor frame, or with --message livox a Livox CustomMsg (livox_ros_driver's in ROS1, livox_ros_driver2's in ROS2)
+of the same points, offset_time in ns after timebase; header.stamp (and timebase) is the sweep start.
+Folders (OUT a folder):
     folder      the same raw scans as PCD files (x, y, z and t), times.txt the sweep starts
     kitti       the KITTI odometry layout: velodyne/*.bin deskewed scans, times.txt, poses.txt the true poses
     keyframes   a LiDAR-inertial front end's keyframe dump: deskewed PCD scans, times.txt, and poses.txt its
@@ -21,6 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pipelines.cli.entry import CommandError, Parser, run_command
+from pipelines.io.bags import MESSAGES
 from pipelines.simulation.export import BAG_FORMATS, DEFAULT_START_TIME, FOLDER_FORMATS, ground_truth_path, simulate
 
 
@@ -70,6 +72,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--topic", default="/points", help="topic of the scans (default /points)")
     parser.add_argument(
+        "--message",
+        choices=MESSAGES,
+        default="pointcloud2",
+        help="message type of a bag's scans: sensor_msgs/PointCloud2 or Livox CustomMsg (default pointcloud2)",
+    )
+    parser.add_argument(
         "--start-time",
         type=_bounded(float, 0.0, "a number >= 0"),
         default=DEFAULT_START_TIME,
@@ -93,6 +101,8 @@ def _run(args: argparse.Namespace) -> int:
     fmt = args.format or ("ros1" if out.suffix == ".bag" else "ros2-mcap")
     if (fmt == "ros1") != (out.suffix == ".bag"):
         raise CommandError(f"OUT must end in .bag for --format ros1, and not otherwise (got {out} for {fmt})")
+    if args.message != "pointcloud2" and fmt not in BAG_FORMATS:
+        raise CommandError(f"--message {args.message} is for bags, not for --format {fmt}")
     existing = [p for p in (out, ground_truth_path(out)) if p.exists() or p.is_symlink()]
     if existing and not args.force:
         raise CommandError(f"{existing[0]} exists (use --force to replace it)")
@@ -110,6 +120,7 @@ def _run(args: argparse.Namespace) -> int:
             drift=args.drift / 100.0,
             overwrite=args.force,
             progress=True,
+            message=args.message,
         )
     except OSError as error:
         raise CommandError(f"cannot write {out}: {error.strerror or error}") from None

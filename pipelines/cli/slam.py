@@ -46,7 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "sequence folder or a keyframe dump; several make a batch")  # fmt: skip
     parser.add_argument("--format", help="the input's format: bag, folder, kitti or keyframes (default: told from "
                         "its layout)")  # fmt: skip
-    parser.add_argument("--topic", help="sensor_msgs/PointCloud2 topic (needed when the bag has several)")
+    parser.add_argument(
+        "--topic", help="point cloud topic, PointCloud2 or Livox CustomMsg (needed when the bag has several)"
+    )
     parser.add_argument("--rate", type=float, help="scans per second [Hz] of a scan folder without other times")
     parser.add_argument("--odometry", metavar="POSES", help="poses of your own front end instead of "
                         "KISS-ICP: TUM (by time) or KITTI (one per scan); the scans deskewed already")  # fmt: skip

@@ -1,5 +1,5 @@
-"""A simulated drive written as a ROS bag of sensor_msgs/PointCloud2 or as a folder of scan files, with its ground
-truth beside it (what `sandro-simulate` writes).
+"""A simulated drive written as a ROS bag (sensor_msgs/PointCloud2 or Livox CustomMsg) or as a folder of scan files,
+with its ground truth beside it (what `sandro-simulate` writes).
 
 Folder formats:
     folder      the raw scans as PCD files (x, y, z float32 and t uint32 [ns] after the sweep start: the same points
@@ -48,11 +48,13 @@ def simulate(
     drift: float = 0.005,
     overwrite: bool = False,
     progress: bool = False,
+    message: str = "pointcloud2",
 ) -> int:
     """Simulate a drive (`simulate_sequence(seed, laps, frames, noise)`) into `out` as a bag (`BAG_FORMATS`) or a
     scan folder (`FOLDER_FORMATS`), and its ground truth T_world_sensor into `ground_truth_path(out)`, at 100 Hz on
     the clock of the scans (sweep starts from `start_time`); returns the number of scans. Both appear together at
-    the end (each written atomically), or neither on an error. `topic` is the bag's; `drift` the keyframe dump's."""
+    the end (each written atomically), or neither on an error. `topic` and `message` (`pipelines.io.bags.MESSAGES`)
+    are the bag's; `drift` the keyframe dump's."""
     if fmt not in BAG_FORMATS + FOLDER_FORMATS:
         raise ValueError(f"unknown format {fmt!r}; choose from {', '.join(BAG_FORMATS + FOLDER_FORMATS)}")
     sequence = simulate_sequence(seed=seed, laps=laps, frames=frames, noise_sigma=noise)
@@ -69,7 +71,7 @@ def simulate(
             scans = (sequence.frame(i) for i in indices)
             return write_bag(
                 out, fmt, (Scan(start_time + f.timestamp, f.points, f.times) for f in scans), topic=topic,
-                overwrite=overwrite,
+                overwrite=overwrite, message=message,
             )  # fmt: skip
         return _write_folder(out, fmt, sequence, indices, start_time, drift, overwrite)
 

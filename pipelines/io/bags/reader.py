@@ -1,4 +1,5 @@
-"""Reading the sensor_msgs/PointCloud2 scans of ROS bags with rosbags (no ROS installation needed).
+"""Reading the LiDAR scans of ROS bags with rosbags (no ROS installation needed): sensor_msgs/PointCloud2 and
+Livox CustomMsg messages.
 
 Reads ROS1 .bag files, ROS2 bag folders (sqlite3 .db3 or mcap storage) and bare .mcap or .db3 files. Each
 message becomes a `Scan`: timestamp = its header.stamp [s] (not the record time); points (N, 3) float64 [m] in
@@ -14,12 +15,15 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
+import numpy as np
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
+from pipelines.io.bags.livox import CUSTOM_MSG_TYPES, CustomMsgError, custom_msg_arrays
 from pipelines.io.bags.pointcloud2 import POINTCLOUD2, PointCloud2Error, pointcloud2_arrays
 from sandro_slam.scan import Scan
 
+SCAN_TYPES = (POINTCLOUD2, *CUSTOM_MSG_TYPES)
 _STORAGE_SUFFIXES = (".mcap", ".db3")
 _MAGIC = {
     ".bag": (b"#ROSBAG V2.0\n", "a ROS1 bag"),
@@ -75,8 +79,8 @@ def _open_reader(path: Path) -> AnyReader:
     return reader
 
 
-def _pointcloud_counts(reader: AnyReader) -> dict[str, int]:
-    return {name: info.msgcount for name, info in reader.topics.items() if info.msgtype == POINTCLOUD2}
+def _scan_counts(reader: AnyReader) -> dict[str, int]:
+    return {name: info.msgcount for name, info in reader.topics.items() if info.msgtype in SCAN_TYPES}
 
 
 def _listing(counts: dict[str, int]) -> str:
@@ -84,38 +88,35 @@ def _listing(counts: dict[str, int]) -> str:
 
 
 def pointcloud_topics(path: str | Path) -> dict[str, int]:
-    """The sensor_msgs/PointCloud2 topics of a bag and their message counts; BagError if it is unreadable."""
+    """The point cloud topics (PointCloud2 or Livox CustomMsg) of a bag and their message counts; BagError if it
+    is unreadable."""
     reader = _open_reader(Path(path))
     try:
-        return _pointcloud_counts(reader)
+        return _scan_counts(reader)
     finally:
         reader.close()
 
 
 def _choose_topic(path: Path, reader: AnyReader, topic: str | None) -> str:
-    clouds = _pointcloud_counts(reader)
+    clouds = _scan_counts(reader)
     if topic is None:
         if not clouds:
             others = ", ".join(f"{name} ({info.msgtype})" for name, info in reader.topics.items()) or "none"
-            raise BagError(f"{path}: no sensor_msgs/PointCloud2 topic (topics: {others})")
+            raise BagError(f"{path}: no sensor_msgs/PointCloud2 or Livox CustomMsg topic (topics: {others})")
         if len(clouds) > 1:
-            raise BagError(f"{path}: several PointCloud2 topics, choose one with --topic: {_listing(clouds)}")
+            raise BagError(f"{path}: several point cloud topics, choose one with --topic: {_listing(clouds)}")
         return next(iter(clouds))
     if topic not in clouds:
         known = reader.topics.get(topic)
-        what = "is not in the bag" if known is None else f"is a {known.msgtype} topic, not PointCloud2"
-        raise BagError(f"{path}: topic {topic} {what}; PointCloud2 topics: {_listing(clouds) or 'none'}")
+        what = "is not in the bag" if known is None else f"is a {known.msgtype} topic, not a point cloud"
+        raise BagError(f"{path}: topic {topic} {what}; point cloud topics: {_listing(clouds) or 'none'}")
     return topic
 
 
-def _stamp_ns(msg: Any) -> int:
-    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
-
-
 class BagScans:
-    """The scans of one PointCloud2 topic of a bag, streamed one message at a time.
+    """The scans of one point cloud topic (PointCloud2 or Livox CustomMsg) of a bag, streamed one message at a time.
 
-    `BagScans(path, topic=None)` opens the bag (topic None: its only PointCloud2 topic) and raises BagError
+    `BagScans(path, topic=None)` opens the bag (topic None: its only point cloud topic) and raises BagError
     when it cannot. Attributes: `path`, `topic`, `count` (messages), `duration` (last minus first
     header.stamp [s], of the first and last recorded messages). Iterating yields (stamp, points, times)
     (see the module docstring), in record order, again from the start at each iteration; messages with no
@@ -128,7 +129,8 @@ class BagScans:
         try:
             self.topic = _choose_topic(self.path, self._reader, topic)
             self._connections = [c for c in self._reader.connections if c.topic == self.topic]
-            self.count = _pointcloud_counts(self._reader)[self.topic]
+            self.count = _scan_counts(self._reader)[self.topic]
+            self._custom_msg = self._reader.topics[self.topic].msgtype in CUSTOM_MSG_TYPES
             self.duration = self._duration()
         except BaseException:
             self.close()
@@ -169,13 +171,23 @@ class BagScans:
                 return
             yield item[0], item[2]
 
-    def _deserialize(self, connection: Any, raw: bytes, index: int | str) -> Any:
+    def _decode(self, connection: Any, raw: bytes, index: int | str) -> tuple[int, np.ndarray, np.ndarray]:
+        """(header.stamp [ns], points, times) of one serialized message; BagError naming it if it cannot be."""
+        where = f"{self.path}: {self.topic} message {index}"
+        if self._custom_msg:
+            try:
+                return custom_msg_arrays(raw, cdr=self._open().is2)
+            except CustomMsgError as error:
+                raise BagError(f"{where}: {error}") from None
         try:
-            return self._open().deserialize(raw, connection.msgtype)
+            msg = self._open().deserialize(raw, connection.msgtype)
         except Exception as error:
-            raise BagError(
-                f"{self.path}: {self.topic} message {index}: cannot deserialize ({_one_line(error)})"
-            ) from None
+            raise BagError(f"{where}: cannot deserialize ({_one_line(error)})") from None
+        try:
+            points, times = pointcloud2_arrays(msg)
+        except PointCloud2Error as error:
+            raise BagError(f"{where}: {error}") from None
+        return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec), points, times
 
     def _duration(self) -> float:
         """Header stamp of the last recorded message minus that of the first [s]; found by reading a growing
@@ -195,14 +207,11 @@ class BagScans:
             window *= 8
         if last is None:
             return 0.0
-        stamps = [_stamp_ns(self._deserialize(c, raw, label)) for (c, raw), label in ((first, 0), (last, "last"))]
+        stamps = [self._decode(c, raw, label)[0] for (c, raw), label in ((first, 0), (last, "last"))]
         return (stamps[1] - stamps[0]) * 1e-9
 
     def __iter__(self) -> Iterator[Scan]:
         for index, (connection, raw) in enumerate(self._raw_messages()):
-            msg = self._deserialize(connection, raw, index)
-            try:
-                points, times = pointcloud2_arrays(msg)
-            except PointCloud2Error as error:
-                raise BagError(f"{self.path}: {self.topic} message {index}: {error}") from None
-            yield Scan(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, points, times)
+            stamp_ns, points, times = self._decode(connection, raw, index)
+            seconds, nanoseconds = divmod(stamp_ns, 1_000_000_000)
+            yield Scan(seconds + nanoseconds * 1e-9, points, times)

@@ -30,10 +30,12 @@ def test_missing_config_is_a_usage_error(tmp_path, capsys):
 
 def test_bag_experiment_runs_a_bag_end_to_end_and_times_reading(tmp_path):
     metrics = bag_experiment(tmp_path, SlamConfig(), seed=0, laps=1, frames=12, formats=("ros2-mcap",), read_scans=3)
-    assert metrics["bag_ros2-mcap_ate_sandro_slam"] < 0.3
-    assert 0 < metrics["bag_ros2-mcap_read_share"] < 1 and metrics["bag_ros2-mcap_read_realtime_factor_64beam"] > 0
+    for name in ("ros2-mcap", "ros1_livox"):  # the same drive as PointCloud2 and as Livox CustomMsg
+        assert metrics[f"bag_{name}_ate_sandro_slam"] < 0.3
+        assert 0 < metrics[f"bag_{name}_read_share"] < 1 and metrics[f"bag_{name}_read_realtime_factor_64beam"] > 0
+        assert (tmp_path / f"sandro-slam_{name}" / "latest" / "metrics.json").is_file()
+    assert metrics["bag_ros1_livox_ate_kiss_icp"] == pytest.approx(metrics["bag_ros2-mcap_ate_kiss_icp"], abs=0.01)
     assert not (tmp_path / "bags").exists()  # the bags are removed
-    assert (tmp_path / "sandro-slam_ros2-mcap" / "latest" / "metrics.json").is_file()
 
 
 def _poses(xs):

@@ -29,6 +29,12 @@ def test_simulate_cli(tmp_path, capsys):
     assert main([str(tmp_path / "folder"), "--frames", "2", "--format", "ros2-sqlite3"]) == 0
     assert main([str(tmp_path / "folder"), "--frames", "1", "--format", "ros2-mcap", "--force"]) == 0
     assert BagScans(tmp_path / "folder").count == 1
+    livox = [str(tmp_path / "livox.bag"), "--frames", "2", "--seed", "2", "--noise", "0.01", "--message", "livox"]
+    assert main(livox) == 0
+    with BagScans(tmp_path / "livox.bag") as bag, BagScans(out) as reference:
+        assert bag._reader.topics["/points"].msgtype == "livox_ros_driver/msg/CustomMsg"
+        for (stamp, points, times), (stamp0, points0, times0) in zip(bag, reference):  # the same scans
+            assert stamp == stamp0 and np.array_equal(points, points0) and np.array_equal(times, times0)
     capsys.readouterr()
     bad_arguments = [
         [],
@@ -37,12 +43,16 @@ def test_simulate_cli(tmp_path, capsys):
         ["y", "--format", "ros1"],
         ["x.bag", "--noise", "-1"],
         ["x.bag", "--frames", "two"],
+        ["x.bag", "--message", "xyz"],
+        ["y", "--format", "kitti", "--message", "livox"],
     ]
     for arguments in bad_arguments:
         assert main([str(tmp_path / arguments[0]), *arguments[1:]] if arguments else []) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and err.startswith("sandro-simulate: error:"), err
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["folder", "folder.gt.tum", "sim.bag", "sim.bag.gt.tum"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "folder", "folder.gt.tum", "livox.bag", "livox.bag.gt.tum", "sim.bag", "sim.bag.gt.tum"
+    ]  # fmt: skip
 
 
 @pytest.mark.parametrize(("fmt", "files"), [("folder", "000002.pcd"), ("kitti", "velodyne/000002.bin"),

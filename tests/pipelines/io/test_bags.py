@@ -227,9 +227,9 @@ def test_topic_selection(topics_bag):
     assert pointcloud_topics(topics_bag) == {"/a": 2, "/b": 1}
     with BagScans(topics_bag, "/b") as bag:
         assert bag.count == 1 and len(list(bag)) == 1
-    with pytest.raises(BagError, match=r"several PointCloud2 topics.*--topic: /a \(2 messages\), /b \(1 message\)"):
+    with pytest.raises(BagError, match=r"several point cloud topics.*--topic: /a \(2 messages\), /b \(1 message\)"):
         BagScans(topics_bag)
-    with pytest.raises(BagError, match="topic /c is not in the bag; PointCloud2 topics: /a"):
+    with pytest.raises(BagError, match="topic /c is not in the bag; point cloud topics: /a"):
         BagScans(topics_bag, "/c")
     with pytest.raises(BagError, match="topic /s is a std_msgs/msg/String topic"):
         BagScans(topics_bag, "/s")
@@ -251,7 +251,7 @@ def test_bad_bags(tmp_path, topics_bag, frames):
         "random.bag": "not a ROS1 bag",
         "random.mcap": "not an MCAP file",
         "notes.txt": "not a bag",
-        "strings.bag": r"no sensor_msgs/PointCloud2 topic \(topics: /s \(std_msgs/msg/String\)\)",
+        "strings.bag": r"no sensor_msgs/PointCloud2 or Livox CustomMsg topic \(topics: /s \(std_msgs/msg/String\)\)",
     }
     for name, message in cases.items():
         with pytest.raises(BagError, match=message) as error:
