@@ -6,8 +6,10 @@ scan's points in the sensor frame at that pose, voxelised no coarser than the su
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
+import gtsam
 import numpy as np
 import small_gicp
 from kiss_icp.config.parser import KISSConfig
@@ -23,6 +25,7 @@ from sandro_slam.sweep_rotation import TRIAL_STRIDE, MapFit, OffPredictionWatch,
 OdometryPose = tuple[float, np.ndarray, np.ndarray]  # (stamp [s], T_world_sensor, points in the sensor frame)
 MAX_HELD_SCANS = 300  # a start that stands still longer (30 s at 10 Hz) is not held back any further
 REDESKEW_DEG = 0.5  # deskew and register a scan again when its rotation differs from the prediction by more
+PERIOD_SCANS = 10  # the sweep period is the median stamp step over this many scans before
 
 
 class GaussianMapRefiner:
@@ -98,18 +101,23 @@ class ScanOdometry(KissICP):
     Where the rotation rate steps by more than the second deskewing follows, the pose lies far from its
     prediction compared with the scans before (`OffPredictionWatch`); the scan is then deskewed with other
     rotations over its sweep, each registered, and the one that fits KISS-ICP's map best is refined and kept
-    where it still fits better than the prediction's (`sweep_rotation`)."""
+    where it still fits better than the prediction's (`sweep_rotation`).
+
+    `sweeps` > 1 says that many sweeps passed since the scan before (the messages between were lost or skipped):
+    the prediction is the constant velocity carried over all of them, and the motion model keeps one sweep's."""
 
     def __init__(self, config: KISSConfig, gicp: OdometryGicpConfig | None = None):
         super().__init__(config)
         self.refiner = GaussianMapRefiner(gicp) if gicp is not None and gicp.enabled else None
         self.watch = OffPredictionWatch()
 
-    def register_frame(self, frame: np.ndarray, timestamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def register_frame(
+        self, frame: np.ndarray, timestamps: np.ndarray, sweeps: int = 1
+    ) -> tuple[np.ndarray, np.ndarray]:
         sigma = max(self.adaptive_threshold.get_threshold(), self.config.mapping.voxel_size)
-        prediction = self.last_pose @ self.last_delta
+        prediction = self.last_pose @ motion_power(self.last_delta, sweeps)
         scan = self._registered(frame, timestamps, self.last_delta, prediction, sigma)
-        motion = np.linalg.inv(self.last_pose) @ scan.pose
+        motion = motion_power(np.linalg.inv(self.last_pose) @ scan.pose, 1.0 / sweeps)
         deskews = len(timestamps) > 0 and self.config.data.deskew
         if deskews and rotation_angle(self.last_delta[:3, :3].T @ motion[:3, :3]) > np.radians(REDESKEW_DEG):
             motion[:3, 3] = self.last_delta[:3, 3]
@@ -122,7 +130,7 @@ class ScanOdometry(KissICP):
         pose, self.map_points = scan.pose, scan.map_points
         self.adaptive_threshold.update_model_deviation(np.linalg.inv(prediction) @ pose)
         self.local_map.update(self.map_points, pose)
-        self.last_delta = np.linalg.inv(self.last_pose) @ pose
+        self.last_delta = motion_power(np.linalg.inv(self.last_pose) @ pose, 1.0 / sweeps)
         self.last_pose = pose
         return scan.deskewed, scan.source
 
@@ -195,11 +203,12 @@ class KissIcpOdometry:
         self._held: list[OdometryPose] = []
         self._held_raw: list[Scan] = []  # the held scans as they came, to deskew them again
         self._correction: np.ndarray | None = None  # KISS-ICP's frame -> the re-registered start's, once known
+        self._stamps: deque[float] = deque(maxlen=PERIOD_SCANS + 1)
         self.unmatched: list[int] = []  # scans without a pose: none, KISS-ICP gives every scan one
 
     def add(self, scan: Scan) -> list[OdometryPose]:
         """Register a scan with finite points; the poses that are final now (none while the start is held)."""
-        deskewed, _ = self.kiss_icp.register_frame(scan.points, scan.times)
+        deskewed, _ = self.kiss_icp.register_frame(scan.points, scan.times, self._sweeps(scan.timestamp))
         pose = self.kiss_icp.last_pose.copy()
         stamp = scan.timestamp + (float(scan.times.max()) if self._deskews(scan) else 0.0)  # KISS-ICP deskews to
         # the last point
@@ -237,6 +246,16 @@ class KissIcpOdometry:
         preprocess = self.kiss_icp.preprocessor.preprocess
         deskewed = [preprocess(s.points, s.times, m) for s, m in zip(self._held_raw, [motions[0], *motions])]
         return [self.kiss_icp.voxelize(d)[1] if self._own_scan else self._submap_points(d) for d in deskewed]
+
+    def _sweeps(self, stamp: float) -> int:
+        """Sweeps from the scan before to the one at `stamp` [s]: the step between their stamps over the median step
+        of the PERIOD_SCANS scans before, rounded; 1 until three steps are known. More than 1 where a bag lost
+        messages or scans were skipped."""
+        steps = np.diff(self._stamps)
+        self._stamps.append(stamp)
+        if len(steps) < 3 or not np.median(steps) > 0.0:
+            return 1
+        return max(1, round((stamp - self._stamps[-2]) / np.median(steps)))
 
     def _submap_points(self, deskewed: np.ndarray) -> np.ndarray:
         return voxel_downsample(deskewed, self.config.keyframes.submap_voxel)
@@ -305,6 +324,14 @@ class GivenOdometry:
 
     def finish(self) -> list[OdometryPose]:
         return []
+
+
+def motion_power(motion: np.ndarray, power: float) -> np.ndarray:
+    """The rigid motion (4x4) `power` times over, on SE(3) (its twist scaled): the motion of `power` sweeps at the
+    constant velocity of `motion` over one, or of one sweep (`power` 1/k) over k; `motion` itself for 1."""
+    if power == 1.0:
+        return motion
+    return gtsam.Pose3.Expmap(power * gtsam.Pose3.Logmap(gtsam.Pose3(motion))).matrix()
 
 
 def path_length(poses: np.ndarray) -> np.ndarray:

@@ -18,7 +18,7 @@ from sandro_slam.keyframes import Keyframe
 from sandro_slam.module import LoopClosure, LoopClosureModule
 from sandro_slam.odometry import GivenPoses
 from sandro_slam.refine import rebuilt_keyframes, refine_poses, reoptimized
-from sandro_slam.scan import Scan, as_scan
+from sandro_slam.scan import POINT_COUNT_SCANS, Scan, SparseScans, as_scan
 from sandro_slam.scene_scale import SCANS, scene_scale
 from sandro_slam.timing import Stopwatch
 
@@ -41,7 +41,8 @@ class SlamResult:
     keyframe_poses: dict[int, np.ndarray]  # optimised T_world_keyframe
     loops: list[LoopClosure]  # verified loops; `weight` < 0.5 means the back end rejected them
     rejected_loops: list[LoopClosure]
-    skipped_frames: list[int]  # input frames without any finite point, or without a given odometry pose
+    skipped_frames: list[int]  # input frames without any finite point, with too few points (`SparseScans`), or
+    # without a given odometry pose
     odometry_noise_scale: float  # on the odometry covariances in the final optimisation (1: as configured)
     config: SlamConfig  # the configuration used, every length resolved (`SlamConfig.resolved`)
     timings: dict[str, float] = field(default_factory=dict)  # wall seconds: odometry, loop_closure (in this
@@ -65,7 +66,8 @@ class OfflineSlam:
         self, frames: Iterable[Scan | Sequence], progress: bool = False, odometry: GivenPoses | None = None
     ) -> SlamResult:
         """Process scans in order: `Scan`s or tuples (timestamp, points[, per-point times]), points in the sensor
-        frame. Frames without a finite point are skipped (`skipped_frames`); other non-finite points are dropped.
+        frame. Frames without a finite point, or with a tenth of the points of the frames before them
+        (`SparseScans`), are skipped (`skipped_frames`); other non-finite points are dropped.
 
         `odometry`: the poses of another front end instead of KISS-ICP (its scans deskewed already); frames it has
         no pose for are skipped too.
@@ -94,8 +96,9 @@ class OfflineSlam:
             stopwatch = Stopwatch("odometry", "loop_closure", "optimization")
             frontend = Frontend(config, background or self.module, stopwatch, odometry)
             skipped, added = [], []  # indices of the input frames
+            sparse = SparseScans(len(scan.points) for _, scan in head[:POINT_COUNT_SCANS] if scan is not None)
             for index, scan in itertools.chain(head, scans):
-                if scan is None:
+                if scan is None or sparse(len(scan.points)):
                     skipped.append(index)
                 else:
                     added.append(index)

@@ -22,7 +22,8 @@ per-point times. Measured:
         small transforms) added to sandro-slam's final graph, optimised by its robust back end and by plain
         least squares (what KISS-SLAM does): ATE and how many were rejected;
     given odometry: sandro-slam on the deskewed scans and the odometry of a simulated LiDAR-inertial front end,
-        drifting by each of --given-drifts (`bench.given_odometry`): ATE and revisit gap, before and after.
+        drifting by each of --given-drifts (`bench.given_odometry`): ATE and revisit gap, before and after;
+    damaged input: the drive with sweeps lost and sweeps cut short (`bench.damaged_input`): frames skipped, ATE.
 Writes metrics.json, metrics.csv and trajectories.png into --out.
 """
 
@@ -40,6 +41,7 @@ from kiss_icp.kiss_icp import KissICP
 
 from pipelines.bench.bags import bag_experiment
 from pipelines.bench.common import default_out_dir, write_csv
+from pipelines.bench.damaged_input import damaged_input_experiment
 from pipelines.bench.given_odometry import given_odometry_experiment
 from pipelines.bench.kiss_slam import kiss_slam_available, run_kiss_slam
 from pipelines.evaluation import align_se3, ate, pose_errors
@@ -73,6 +75,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--given-drifts",
         default="0.5,0.05",
         help="drifts [%% of the distance] of the given odometry runs, comma list ('' for none; default 0.5,0.05)",
+    )
+    parser.add_argument(
+        "--no-damaged-input", action="store_true", help="skip the run with sweeps lost and sweeps cut short"
     )
     parser.add_argument(
         "--no-bags",
@@ -139,6 +144,8 @@ def run(args: argparse.Namespace) -> int:
     drifts = [float(value) / 100.0 for value in args.given_drifts.split(",") if value.strip()]
     if drifts:
         metrics.update(given_odometry_experiment(sequence, frames, config, drifts))
+    if not args.no_damaged_input:
+        metrics.update(damaged_input_experiment(sequence, frames, config))
     if not args.no_bags:
         del frames  # the bag runs stream their frames
         metrics.update(bag_experiment(out, config, args.seed, args.laps, args.frames))
