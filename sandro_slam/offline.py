@@ -18,7 +18,7 @@ from sandro_slam.keyframes import Keyframe
 from sandro_slam.module import LoopClosure, LoopClosureModule
 from sandro_slam.odometry import GivenPoses
 from sandro_slam.refine import rebuilt_keyframes, refine_poses, reoptimized
-from sandro_slam.scan import POINT_COUNT_SCANS, Scan, SparseScans, as_scan
+from sandro_slam.scan import VOXEL_COUNT_SCANS, Scan, SparseScans, as_scan, occupied_voxels
 from sandro_slam.scene_scale import SCANS, scene_scale
 from sandro_slam.timing import Stopwatch
 
@@ -66,8 +66,9 @@ class OfflineSlam:
         self, frames: Iterable[Scan | Sequence], progress: bool = False, odometry: GivenPoses | None = None
     ) -> SlamResult:
         """Process scans in order: `Scan`s or tuples (timestamp, points[, per-point times]), points in the sensor
-        frame. Frames without a finite point, or with a tenth of the points of the frames before them
-        (`SparseScans`), are skipped (`skipped_frames`); other non-finite points are dropped.
+        frame. Frames without a finite point, or occupying too few odometry voxels (`SparseScans`: fewer than 100,
+        or than a tenth of the frames before) are skipped (`skipped_frames`); other non-finite points are
+        dropped.
 
         `odometry`: the poses of another front end instead of KISS-ICP (its scans deskewed already); frames it has
         no pose for are skipped too.
@@ -96,9 +97,13 @@ class OfflineSlam:
             stopwatch = Stopwatch("odometry", "loop_closure", "optimization")
             frontend = Frontend(config, background or self.module, stopwatch, odometry)
             skipped, added = [], []  # indices of the input frames
-            sparse = SparseScans(len(scan.points) for _, scan in head[:POINT_COUNT_SCANS] if scan is not None)
+            data = config.odometry
+            grid = (data.mapping.voxel_size, data.data.min_range, data.data.max_range)
+            sparse = SparseScans(
+                occupied_voxels(scan.points, *grid) for _, scan in head[:VOXEL_COUNT_SCANS] if scan is not None
+            )
             for index, scan in itertools.chain(head, scans):
-                if scan is None or sparse(len(scan.points)):
+                if scan is None or sparse(occupied_voxels(scan.points, *grid)):
                     skipped.append(index)
                 else:
                     added.append(index)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from sandro_slam.scan import Scan, as_scan
+from sandro_slam.scan import Scan, as_scan, occupied_voxels
 
 
 def test_tuples_and_scans_become_float64_scans():
@@ -14,6 +14,14 @@ def test_tuples_and_scans_become_float64_scans():
         assert scan.points.dtype == np.float64 and np.array_equal(scan.points, points)
     scan = as_scan((2.5, points, np.arange(4, dtype=np.uint32)), 0)
     assert scan.times.dtype == np.float64 and scan.times.tolist() == [0.0, 1.0, 2.0, 3.0]
+    assert len(as_scan((2.5, points, np.full(4, 0.03)), 0).times) == 0  # one firing's time for all: no time
+
+
+def test_occupied_voxels_counts_the_voxels_within_range():
+    points = np.array([[0.1, 0.1, 0.1], [0.2, 0.3, 0.1], [1.5, 0.2, 0.0], [5.0, 0.0, 0.0], [50.0, 0.0, 0.0]])
+    assert occupied_voxels(points, 1.0, 0.0, 100.0) == 4
+    assert occupied_voxels(points, 1.0, 1.0, 10.0) == 2
+    assert occupied_voxels(points, 1.0, 60.0, 100.0) == 0
 
 
 def test_bad_frames_name_their_index():
