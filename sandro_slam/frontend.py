@@ -64,7 +64,7 @@ class Frontend:
             ready = self.odometry.finish()
         self._keep(ready)
         if not self.timestamps:
-            raise ValueError("no frame with finite points (and an odometry pose): nothing to process")
+            raise ValueError("no frame with enough finite points (and an odometry pose): nothing to process")
         with self.stopwatch("loop_closure"):
             last = self.builder.flush()
             if last is not None:

@@ -71,7 +71,11 @@ def open_input(path: str | Path, fmt: str | None = None, topic: str | None = Non
         raise ValueError(f"unknown input format {fmt!r}; choose from {', '.join(FORMATS)}")
     if fmt == "bag":
         scans = BagScans(path, topic)
-        return ScanInput(scans, {"input": str(path), "format": "bag", "topic": scans.topic, "messages": len(scans)})
+        description = {"input": str(path), "format": "bag", "topic": scans.topic, "messages": len(scans)}
+        result = ScanInput(scans, {**description, "stamps": scans.stamps})
+        if scans.stamps == "record":
+            result.notes.append(f"{scans.topic}: header.stamp does not change, the scans are timed when recorded")
+        return result
     if topic is not None:
         raise ValueError(f"{path}: --topic is for bags, this is a {fmt} input")
     scans = ScanFolder(path, rate)

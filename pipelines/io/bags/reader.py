@@ -117,10 +117,12 @@ class BagScans:
     """The scans of one point cloud topic (PointCloud2 or Livox CustomMsg) of a bag, streamed one message at a time.
 
     `BagScans(path, topic=None)` opens the bag (topic None: its only point cloud topic) and raises BagError
-    when it cannot. Attributes: `path`, `topic`, `count` (messages), `duration` (last minus first
-    header.stamp [s], of the first and last recorded messages). Iterating yields (stamp, points, times)
-    (see the module docstring), in record order, again from the start at each iteration; messages with no
-    points yield points of shape (0, 3). Use as a context manager, or call `close()`.
+    when it cannot. Attributes: `path`, `topic`, `count` (messages), `stamps` ("header", or "record" when the
+    first and last messages carry the same header.stamp, as drivers that leave it zero do: each scan's stamp is
+    then the time it was recorded), `duration` (last minus first stamp [s], of the first and last recorded
+    messages). Iterating yields (stamp, points, times) (see the module docstring), in record order, again from
+    the start at each iteration; messages with no points yield points of shape (0, 3). Use as a context manager,
+    or call `close()`.
     """
 
     def __init__(self, path: str | Path, topic: str | None = None) -> None:
@@ -131,7 +133,7 @@ class BagScans:
             self._connections = [c for c in self._reader.connections if c.topic == self.topic]
             self.count = _scan_counts(self._reader)[self.topic]
             self._custom_msg = self._reader.topics[self.topic].msgtype in CUSTOM_MSG_TYPES
-            self.duration = self._duration()
+            self.stamps, self.duration = self._stamps_and_duration()
         except BaseException:
             self.close()
             raise
@@ -158,9 +160,9 @@ class BagScans:
             raise BagError(f"{self.path}: the bag is closed")
         return self._reader
 
-    def _raw_messages(self, start: int | None = None) -> Iterator[tuple[Any, bytes]]:
-        """(connection, serialized message) of the topic recorded at or after `start` [ns]; rosbags' errors
-        become BagError."""
+    def _raw_messages(self, start: int | None = None) -> Iterator[tuple[Any, int, bytes]]:
+        """(connection, record time [ns], serialized message) of the topic recorded at or after `start` [ns];
+        rosbags' errors become BagError."""
         messages = self._open().messages(self._connections, start=start)
         while True:
             try:
@@ -169,7 +171,7 @@ class BagScans:
                 raise BagError(f"{self.path}: corrupt or truncated bag ({_one_line(error)})") from None
             if item is None:
                 return
-            yield item[0], item[2]
+            yield item
 
     def _decode(self, connection: Any, raw: bytes, index: int | str) -> tuple[int, np.ndarray, np.ndarray]:
         """(header.stamp [ns], points, times) of one serialized message; BagError naming it if it cannot be."""
@@ -189,14 +191,14 @@ class BagScans:
             raise BagError(f"{where}: {error}") from None
         return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec), points, times
 
-    def _duration(self) -> float:
-        """Header stamp of the last recorded message minus that of the first [s]; found by reading a growing
-        window at the end of the bag, so a long bag is not read whole."""
+    def _stamps_and_duration(self) -> tuple[str, float]:
+        """(`stamps`, the stamp of the last recorded message minus that of the first [s]); the last found by
+        reading a growing window at the end of the bag, so a long bag is not read whole."""
         messages = self._raw_messages()
         first = next(messages, None)
         messages.close()
         if first is None:
-            return 0.0
+            return "header", 0.0
         reader = self._open()
         start, end = reader.start_time, reader.end_time
         window = 2 * max(1, (end - start) // max(self.count, 1))
@@ -206,12 +208,16 @@ class BagScans:
                 break
             window *= 8
         if last is None:
-            return 0.0
-        stamps = [self._decode(c, raw, label)[0] for (c, raw), label in ((first, 0), (last, "last"))]
-        return (stamps[1] - stamps[0]) * 1e-9
+            return "header", 0.0
+        stamps = [self._decode(c, raw, label)[0] for (c, _, raw), label in ((first, 0), (last, "last"))]
+        if stamps[0] == stamps[1] and self.count > 1:
+            return "record", (last[1] - first[1]) * 1e-9
+        return "header", (stamps[1] - stamps[0]) * 1e-9
 
     def __iter__(self) -> Iterator[Scan]:
-        for index, (connection, raw) in enumerate(self._raw_messages()):
+        for index, (connection, recorded, raw) in enumerate(self._raw_messages()):
             stamp_ns, points, times = self._decode(connection, raw, index)
+            if self.stamps == "record":
+                stamp_ns = recorded
             seconds, nanoseconds = divmod(stamp_ns, 1_000_000_000)
             yield Scan(seconds + nanoseconds * 1e-9, points, times)

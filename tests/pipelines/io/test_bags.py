@@ -16,6 +16,7 @@ from pipelines.io.bags.pointcloud2 import (
     pointcloud2_arrays,
     scan_cloud,
 )
+from pipelines.io.inputs import open_input
 from pipelines.simulation import simulate_sequence
 
 ROS2 = get_typestore(Stores.LATEST)
@@ -207,6 +208,22 @@ def test_writing_is_atomic(tmp_path, frames):
         write_bag(tmp_path / "a.bag", "ros1", frames)
     write_bag(tmp_path / "a.bag", "ros1", frames, overwrite=True)
     assert BagScans(tmp_path / "a.bag").count == 3
+
+
+def test_a_bag_whose_header_stamps_do_not_change_is_timed_by_record_time(tmp_path, frames):
+    raw = ROS1.serialize_ros1(encode_pointcloud2(ROS1, 0.0, scan_cloud(frames[0][1], frames[0][2])), POINTCLOUD2)
+    with Writer1(tmp_path / "zero.bag") as writer:
+        connection = writer.add_connection("/points", POINTCLOUD2, typestore=ROS1)
+        for k in range(3):
+            writer.write(connection, 1_700_000_000_000_000_000 + k * 100_000_000, raw)  # header.stamp 0 in each
+    with BagScans(tmp_path / "zero.bag") as bag:
+        assert bag.stamps == "record" and bag.duration == pytest.approx(0.2)
+        assert [scan.timestamp for scan in bag] == pytest.approx([1.7e9, 1.7e9 + 0.1, 1.7e9 + 0.2], abs=1e-6)
+    write_bag(tmp_path / "good.bag", "ros1", frames)
+    assert BagScans(tmp_path / "good.bag").stamps == "header"
+    source = open_input(tmp_path / "zero.bag")
+    assert source.description["stamps"] == "record" and "timed when recorded" in source.notes[0]
+    source.scans.close()
 
 
 @pytest.fixture(scope="module")
