@@ -58,6 +58,10 @@ class Frontend:
             ready = self.odometry.add(scan)
         self._keep(ready)
 
+    def skip(self, stamp: float) -> None:
+        """A scan at `stamp` [s] that is not added (too sparse to register): the odometry learns that it passed."""
+        self.odometry.skip(stamp)
+
     def finish(self) -> None:
         """Keep the poses the odometry still holds and close the last keyframe. ValueError when there is none."""
         with self.stopwatch("odometry"):

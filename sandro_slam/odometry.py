@@ -26,6 +26,8 @@ OdometryPose = tuple[float, np.ndarray, np.ndarray]  # (stamp [s], T_world_senso
 MAX_HELD_SCANS = 300  # a start that stands still longer (30 s at 10 Hz) is not held back any further
 REDESKEW_DEG = 0.5  # deskew and register a scan again when its rotation differs from the prediction by more
 PERIOD_SCANS = 10  # the sweep period is the median stamp step over this many scans before
+MAX_BRIDGED_SWEEPS = 10  # a longer step between stamps is taken for a jump of the clock (a driver's switch to
+# PTP time) or a pause of the recording, not for lost sweeps: the scan is predicted one sweep ahead
 
 
 class GaussianMapRefiner:
@@ -203,7 +205,8 @@ class KissIcpOdometry:
         self._held: list[OdometryPose] = []
         self._held_raw: list[Scan] = []  # the held scans as they came, to deskew them again
         self._correction: np.ndarray | None = None  # KISS-ICP's frame -> the re-registered start's, once known
-        self._stamps: deque[float] = deque(maxlen=PERIOD_SCANS + 1)
+        self._stamps: deque[float] = deque(maxlen=PERIOD_SCANS + 1)  # of the scans seen, skipped ones included
+        self._registered_stamp: float | None = None
         self.unmatched: list[int] = []  # scans without a pose: none, KISS-ICP gives every scan one
 
     def add(self, scan: Scan) -> list[OdometryPose]:
@@ -247,15 +250,25 @@ class KissIcpOdometry:
         deskewed = [preprocess(s.points, s.times, m) for s, m in zip(self._held_raw, [motions[0], *motions])]
         return [self.kiss_icp.voxelize(d)[1] if self._own_scan else self._submap_points(d) for d in deskewed]
 
-    def _sweeps(self, stamp: float) -> int:
-        """Sweeps from the scan before to the one at `stamp` [s]: the step between their stamps over the median step
-        of the PERIOD_SCANS scans before, rounded; 1 until three steps are known. More than 1 where a bag lost
-        messages or scans were skipped."""
-        steps = np.diff(self._stamps)
+    def skip(self, stamp: float) -> None:
+        """A scan at `stamp` [s] that is not registered (`Frontend.skip`): the next is predicted past it."""
         self._stamps.append(stamp)
-        if len(steps) < 3 or not np.median(steps) > 0.0:
+
+    def _sweeps(self, stamp: float) -> int:
+        """Sweeps from the scan registered last to the one at `stamp` [s]: the step between their stamps over the
+        median step between the PERIOD_SCANS scans seen before (skipped ones included), rounded; 1 until three steps
+        are known, and 1 where the step from the scan seen last exceeds MAX_BRIDGED_SWEEPS periods. More than 1 where
+        a bag lost messages or scans were skipped."""
+        steps = np.diff(self._stamps)
+        previous, last = (self._stamps[-1] if self._stamps else None), self._registered_stamp
+        self._stamps.append(stamp)
+        self._registered_stamp = stamp
+        if len(steps) < 3 or not np.median(steps) > 0.0 or last is None:
             return 1
-        return max(1, round((stamp - self._stamps[-2]) / np.median(steps)))
+        period = float(np.median(steps))
+        if stamp - previous > (MAX_BRIDGED_SWEEPS + 0.5) * period:  # the clock jumped, or the recording paused
+            return 1
+        return max(1, round((stamp - last) / period))
 
     def _submap_points(self, deskewed: np.ndarray) -> np.ndarray:
         return voxel_downsample(deskewed, self.config.keyframes.submap_voxel)
@@ -321,6 +334,9 @@ class GivenOdometry:
             self.unmatched.append(index)
             return []
         return [(scan.timestamp, pose, voxel_downsample(scan.points, self.submap_voxel))]
+
+    def skip(self, stamp: float) -> None:
+        """A scan that is not used: nothing to learn from it (the poses are given)."""
 
     def finish(self) -> list[OdometryPose]:
         return []

@@ -83,7 +83,7 @@ class OfflineSlam:
         head = [] if self.config.scale is not None else _first_scans(scans)  # a scale set is used as it is
         if head:
             data = self.config.odometry.data
-            scale = scene_scale([scan.points for _, scan in head if scan is not None], data.min_range, data.max_range)
+            scale = scene_scale([scan.points for _, scan in head if len(scan.points)], data.min_range, data.max_range)
             self.module = LoopClosureModule(self.config.resolved(scale))
         elif self.module is None:
             self.module = LoopClosureModule(self.config.resolved())  # the scale set, or 1 without any scan
@@ -100,11 +100,12 @@ class OfflineSlam:
             data = config.odometry
             grid = (data.mapping.voxel_size, data.data.min_range, data.data.max_range)
             sparse = SparseScans(
-                occupied_voxels(scan.points, *grid) for _, scan in head[:VOXEL_COUNT_SCANS] if scan is not None
+                occupied_voxels(scan.points, *grid) for _, scan in head[:VOXEL_COUNT_SCANS] if len(scan.points)
             )
             for index, scan in itertools.chain(head, scans):
-                if scan is None or sparse(occupied_voxels(scan.points, *grid)):
+                if sparse(occupied_voxels(scan.points, *grid)):
                     skipped.append(index)
+                    frontend.skip(scan.timestamp)
                 else:
                     added.append(index)
                     frontend.add(scan)
@@ -129,7 +130,7 @@ class OfflineSlam:
         used = (
             scan
             for index, frame in enumerate(_with_progress(frames, progress, "refine"))
-            if index not in skipped and (scan := _finite(as_scan(frame, index))) is not None
+            if index not in skipped and len((scan := _finite(as_scan(frame, index))).points)
         )
         config = result.config
         scan_poses, scans = refine_poses(
@@ -196,23 +197,21 @@ def _relative_to_keyframes(keyframes: list[Keyframe], keyframe_of_frame: np.ndar
     return np.stack([T_keyframe_world[int(key)] for key in keyframe_of_frame]) @ poses
 
 
-def _first_scans(scans: Iterator[tuple[int, Scan | None]]) -> list[tuple[int, Scan | None]]:
+def _first_scans(scans: Iterator[tuple[int, Scan]]) -> list[tuple[int, Scan]]:
     """Items of `scans` up to the SCANS-th that has points (all of them if fewer)."""
     head, with_points = [], 0
     for item in scans:
         head.append(item)
-        with_points += item[1] is not None
+        with_points += len(item[1].points) > 0
         if with_points >= SCANS:
             break
     return head
 
 
-def _finite(scan: Scan) -> Scan | None:
-    """The scan without its non-finite points; None when no point is finite."""
-    if len(scan.points) and np.isfinite(scan.points.sum()):  # one reduction for clean scans
+def _finite(scan: Scan) -> Scan:
+    """The scan without its non-finite points (perhaps none left)."""
+    if np.isfinite(scan.points.sum()):  # one reduction for clean scans
         return scan
     finite = np.all(np.isfinite(scan.points), axis=1)
-    if not finite.any():
-        return None
     times = scan.times[finite] if len(scan.times) else scan.times
     return Scan(scan.timestamp, scan.points[finite], times)

@@ -132,6 +132,16 @@ def test_lost_messages_are_predicted_over_the_sweeps_they_span(short_drive):
     assert ate(result.odometry_poses, sequence.poses_at(result.timestamps)) < 0.08  # 0.04 m
 
 
+def test_a_clock_that_jumps_is_not_taken_for_lost_messages(short_drive):
+    # A driver whose stamps jump 5 s ahead (a switch to PTP time) while the sweeps go on: carried over 50 sweeps,
+    # the constant velocity would predict the next scan 50 m ahead.
+    frames, sequence = short_drive
+    jumped = [Scan(f.timestamp + 5.0 * (i >= 60), f.points, f.times) for i, f in enumerate(frames)]
+    result = OfflineSlam(SlamConfig()).run(jumped)
+    truth = sequence.poses_at(result.timestamps - 5.0 * (np.arange(len(frames)) >= 60))
+    assert ate(result.odometry_poses, truth) < 0.05  # 0.02 m, as without the jump
+
+
 def test_scans_with_a_tenth_of_the_points_are_skipped(short_drive):
     # A partial first sweep and sweeps cut to 20 points: registered, they throw the odometry off (0.17 m ATE).
     frames, sequence = short_drive
