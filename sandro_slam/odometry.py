@@ -319,24 +319,27 @@ class GivenPoses:
 
 class GivenOdometry:
     """`GivenPoses` as the front end's odometry. Scans without a pose are not used; `unmatched` lists their indices
-    (in the order they were added)."""
+    (in the order they were added). Poses in order are one per scan seen, skipped ones included."""
 
     def __init__(self, given: GivenPoses, submap_voxel: float):
         self.given = given
         self.submap_voxel = submap_voxel
         self.unmatched: list[int] = []
-        self._index = 0
+        self._seen = 0  # scans added or skipped
+        self._added = 0
 
     def add(self, scan: Scan) -> list[OdometryPose]:
-        index, self._index = self._index, self._index + 1
-        pose = self.given.at(index, scan.timestamp)
+        pose = self.given.at(self._seen, scan.timestamp)
+        self._seen += 1
+        self._added += 1
         if pose is None:
-            self.unmatched.append(index)
+            self.unmatched.append(self._added - 1)
             return []
         return [(scan.timestamp, pose, voxel_downsample(scan.points, self.submap_voxel))]
 
     def skip(self, stamp: float) -> None:
-        """A scan that is not used: nothing to learn from it (the poses are given)."""
+        """A scan that is not added (`Frontend.skip`): the next one's pose in order is the one after its."""
+        self._seen += 1
 
     def finish(self) -> list[OdometryPose]:
         return []

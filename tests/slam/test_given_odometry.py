@@ -43,3 +43,15 @@ def test_scans_outside_the_given_odometry_are_skipped():
     assert result.skipped_frames == [0, 1, 7]
     np.testing.assert_allclose(result.timestamps, stamps[2:7])
     np.testing.assert_allclose(result.poses, np.array(truth[2:7]), atol=1e-9)
+
+
+def test_poses_in_order_stay_with_their_scans_where_scans_are_skipped():
+    sequence = simulate_sequence(seed=2, frames=8)
+    scans, truth = (list(x) for x in zip(*(sequence.deskewed(i) for i in range(len(sequence)))))
+    scans[3] = scans[3]._replace(points=np.full((10, 3), np.nan))  # no finite point
+    scans[5] = scans[5]._replace(points=scans[5].points[:20])  # too sparse to use
+    config = SlamConfig()
+    config.loops.in_background = False
+    result = OfflineSlam(config).run(scans, odometry=GivenPoses(np.array(truth)))
+    assert result.skipped_frames == [3, 5]
+    np.testing.assert_allclose(result.poses, np.array(truth)[[0, 1, 2, 4, 6, 7]], atol=1e-9)
