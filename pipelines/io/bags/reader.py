@@ -2,9 +2,9 @@
 Livox CustomMsg messages.
 
 Reads ROS1 .bag files, ROS2 bag folders (sqlite3 .db3 or mcap storage) and bare .mcap or .db3 files. Each
-message becomes a `Scan`: timestamp = its header.stamp [s] (not the record time); points (N, 3) float64 [m] in
-the sensor frame; times (N,) float64 [s] per point relative to the stamp, or an empty array when the cloud
-carries no per-point time.
+message becomes a `Scan`: timestamp = its header.stamp [s] (not the record time, unless header.stamp never
+changes: `BagScans.stamps`); points (N, 3) float64 [m] in the sensor frame; times (N,) float64 [s] per point
+relative to header.stamp, or an empty array when the cloud carries no per-point time.
 """
 
 from __future__ import annotations
