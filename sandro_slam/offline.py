@@ -18,7 +18,7 @@ from sandro_slam.keyframes import Keyframe
 from sandro_slam.module import LoopClosure, LoopClosureModule
 from sandro_slam.odometry import GivenPoses
 from sandro_slam.refine import rebuilt_keyframes, refine_poses, reoptimized
-from sandro_slam.scan import VOXEL_COUNT_SCANS, Scan, SparseScans, as_scan, occupied_voxels
+from sandro_slam.scan import MIN_VOXELS, VOXEL_COUNT_SCANS, Scan, SparseScans, as_scan, occupied_voxels
 from sandro_slam.scene_scale import SCANS, scene_scale
 from sandro_slam.timing import Stopwatch
 
@@ -109,6 +109,11 @@ class OfflineSlam:
                 else:
                     added.append(index)
                     frontend.add(scan)
+            if skipped and not added:
+                raise ValueError(
+                    f"no frame to process: all {len(skipped)} hold fewer than {MIN_VOXELS} occupied {grid[0]:g} m "
+                    f"voxels within {grid[1]:g}-{grid[2]:g} m of the sensor (are the points in the sensor frame?)"
+                )
             frontend.finish()
             skipped = sorted(skipped + [added[i] for i in frontend.unmatched])
             timings = stopwatch.seconds

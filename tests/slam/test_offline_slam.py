@@ -106,10 +106,13 @@ def test_offline_slam_single_frame_and_no_points():
     frame = simulate_sequence(seed=1, frames=1).frame(0)
     result = OfflineSlam().run([(frame.timestamp, frame.points)])
     np.testing.assert_allclose(result.poses[0], np.eye(4))
-    with pytest.raises(ValueError, match="no frame with enough finite points"):
+    with pytest.raises(ValueError, match="no frame to process: all 1 hold fewer than 100 occupied"):
         OfflineSlam().run([(0.0, np.full((5, 3), np.nan))])
-    with pytest.raises(ValueError, match="no frame with enough finite points"):  # 50 points: too few to register
+    with pytest.raises(ValueError, match="all 3 hold fewer"):  # 50 points: too few to register
         OfflineSlam().run([(0.1 * k, frame.points[:50]) for k in range(3)])
+    far = frame.points + [2000.0, 0.0, 0.0]  # a cloud in a map frame, beyond the odometry's range
+    with pytest.raises(ValueError, match=r"within 0-100 m of the sensor \(are the points in the sensor frame\?\)"):
+        OfflineSlam().run([(0.1 * k, far) for k in range(3)])
     with pytest.raises(ValueError, match=r"frame 0: points must be an \(N, 3\) array"):
         OfflineSlam().run([(0.0, np.zeros((5, 2)))])
     with pytest.raises(ValueError, match="frame 0: 4 per-point times for 5 points"):
