@@ -41,8 +41,8 @@ class SlamResult:
     keyframe_poses: dict[int, np.ndarray]  # optimised T_world_keyframe
     loops: list[LoopClosure]  # verified loops; `weight` < 0.5 means the back end rejected them
     rejected_loops: list[LoopClosure]
-    skipped_frames: list[int]  # input frames without any finite point, with too few points (`SparseScans`), or
-    # without a given odometry pose
+    skipped_frames: list[int]  # input frames without any finite point, with too few points (`SparseScans`), that
+    # repeat the frame before (stamp and points), or without a given odometry pose
     odometry_noise_scale: float  # on the odometry covariances in the final optimisation (1: as configured)
     config: SlamConfig  # the configuration used, every length resolved (`SlamConfig.resolved`)
     timings: dict[str, float] = field(default_factory=dict)  # wall seconds: odometry, loop_closure (in this
@@ -66,9 +66,9 @@ class OfflineSlam:
         self, frames: Iterable[Scan | Sequence], progress: bool = False, odometry: GivenPoses | None = None
     ) -> SlamResult:
         """Process scans in order: `Scan`s or tuples (timestamp, points[, per-point times]), points in the sensor
-        frame. Frames without a finite point, or occupying too few odometry voxels (`SparseScans`: fewer than 100,
-        or than a tenth of the frames before) are skipped (`skipped_frames`); other non-finite points are
-        dropped.
+        frame. Frames without a finite point, occupying too few odometry voxels (`SparseScans`: fewer than 100, or
+        than a tenth of the frames before), or repeating the frame before (its stamp and points: a message
+        recorded twice) are skipped (`skipped_frames`); other non-finite points are dropped.
 
         `odometry`: the poses of another front end instead of KISS-ICP (its scans deskewed already); frames it has
         no pose for are skipped too.
@@ -102,8 +102,12 @@ class OfflineSlam:
             sparse = SparseScans(
                 occupied_voxels(scan.points, *grid) for _, scan in head[:VOXEL_COUNT_SCANS] if len(scan.points)
             )
+            previous = None
             for index, scan in itertools.chain(head, scans):
-                if sparse(occupied_voxels(scan.points, *grid)):
+                repeated, previous = _same_sweep(scan, previous), scan
+                if repeated:  # a message recorded twice: KISS-ICP would take it for a stop
+                    skipped.append(index)
+                elif sparse(occupied_voxels(scan.points, *grid)):
                     skipped.append(index)
                     frontend.skip(scan.timestamp)
                 else:
@@ -211,6 +215,16 @@ def _first_scans(scans: Iterator[tuple[int, Scan]]) -> list[tuple[int, Scan]]:
         if with_points >= SCANS:
             break
     return head
+
+
+def _same_sweep(scan: Scan, previous: Scan | None) -> bool:
+    """Whether `scan` repeats `previous`: the same stamp and the same points."""
+    return (
+        previous is not None
+        and scan.timestamp == previous.timestamp
+        and scan.points.shape == previous.points.shape
+        and np.array_equal(scan.points, previous.points)
+    )
 
 
 def _finite(scan: Scan) -> Scan:

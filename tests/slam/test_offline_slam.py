@@ -135,6 +135,15 @@ def test_lost_messages_are_predicted_over_the_sweeps_they_span(short_drive):
     assert ate(result.odometry_poses, sequence.poses_at(result.timestamps)) < 0.08  # 0.04 m
 
 
+def test_a_message_recorded_twice_is_skipped(short_drive):
+    # Registered again, a repeated sweep reads as a stop: the motion model loses a sweep's motion (0.14 m ATE).
+    frames, sequence = short_drive
+    doubled = [copy for i, f in enumerate(frames) for copy in ([f, f] if i % 20 == 7 else [f])]
+    result = OfflineSlam(SlamConfig()).run(doubled)
+    assert result.skipped_frames == [8 + 21 * k for k in range(6)] and len(result.poses) == len(frames)
+    assert ate(result.odometry_poses, sequence.poses_at(result.timestamps)) < 0.05  # 0.02 m
+
+
 def test_a_clock_that_jumps_is_not_taken_for_lost_messages(short_drive):
     # A driver whose stamps jump 5 s ahead (a switch to PTP time) while the sweeps go on: carried over 50 sweeps,
     # the constant velocity would predict the next scan 50 m ahead.
