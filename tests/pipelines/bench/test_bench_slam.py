@@ -19,8 +19,8 @@ def test_short_run_writes_its_outputs(tmp_path):
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["frames"] == 25 and metrics["ate_sandro_slam"] < 0.5
     assert metrics["given_0.5pct_ate_odometry"] > 0.0 and metrics["given_0.05pct_ate_sandro_slam"] < 0.5
-    lost, cut = metrics["damaged_frames_lost"], metrics["damaged_frames_cut"]
-    assert (lost, cut) == (2, 1) and metrics["damaged_frames_skipped"] == cut
+    lost, cut, repeated = (metrics[f"damaged_frames_{what}"] for what in ("lost", "cut", "repeated"))
+    assert (lost, cut, repeated) == (2, 1, 1) and metrics["damaged_frames_skipped"] == cut + repeated
     assert metrics["damaged_ate_sandro_slam"] < 0.5
     for name in ("metrics.csv", "trajectories.png", "sandro-slam.tum", "ground_truth.tum", "KISS-ICP.tum"):
         assert (tmp_path / name).is_file()
