@@ -45,3 +45,18 @@ def relative_seconds(values: np.ndarray, stamp: float) -> np.ndarray:
     if times.min() == times.max():
         return np.empty(0)
     return times
+
+
+def nanoseconds_after_stamp(times: np.ndarray, count: int) -> np.ndarray:
+    """Per-point times [s] after a cloud's stamp as the integer nanoseconds of uint32 time fields (Ouster `t`, Livox
+    `offset_time`), for a cloud of `count` points; zeros when `times` is empty.
+
+    Raises:
+        ValueError: not one time per point, or a time outside [0, 4.29) s.
+    """
+    times = np.asarray(times, dtype=np.float64)
+    if not len(times):
+        return np.zeros(count, dtype=np.uint32)
+    if len(times) != count or times.min() < 0 or times.max() >= 2**32 * 1e-9:
+        raise ValueError("times must be one per point, within [0, 4.29) s of the stamp")
+    return np.round(times * 1e9).astype(np.uint32)

@@ -17,7 +17,8 @@ import numpy as np
 from rosbags.typesys import get_types_from_msg
 from rosbags.typesys.store import Typestore
 
-from pipelines.io.lidar_points import returns
+from pipelines.io.bags.pointcloud2 import ros_header
+from pipelines.io.lidar_points import nanoseconds_after_stamp, relative_seconds, returns
 
 CUSTOM_MSG_TYPES = (
     "livox_ros_driver/msg/CustomMsg",
@@ -91,9 +92,8 @@ def custom_msg_arrays(raw: bytes | memoryview, cdr: bool) -> tuple[int, np.ndarr
     keep = returns(points)
     if keep is not None:
         points, offsets = points[keep], offsets[keep]
-    if offsets.size == 0 or offsets.min() == offsets.max():
-        return stamp_ns, points, np.empty(0)
-    return stamp_ns, points, (offsets.astype(np.float64) + float(timebase - stamp_ns)) * 1e-9
+    times = relative_seconds(offsets, 0.0)  # uint32 ns after timebase; none when all the same
+    return stamp_ns, points, times + (timebase - stamp_ns) * 1e-9 if len(times) else times
 
 
 def _ros1_layout(data: memoryview) -> tuple[int, int, int, int, str, int]:
@@ -131,21 +131,13 @@ def encode_custom_msg(
     """A CustomMsg of `typestore` (registered with `register_custom_msg`) holding points (N, 3) [m] and times (N,)
     [s] after `stamp` (empty: every offset_time 0); timebase and header.stamp are both `stamp`, as Livox's
     drivers set them."""
-    if len(times) and (len(times) != len(points) or min(times) < 0 or max(times) >= 2**32 * 1e-9):
-        raise ValueError("times must be one per point, within [0, 4.29) s of the stamp")
+    offsets = nanoseconds_after_stamp(times, len(points))
     types = typestore.types
-    package = msgtype.split("/")[0]
-    point = types[f"{package}/msg/CustomPoint"]
-    offsets = np.round(np.asarray(times) * 1e9).astype(np.int64) if len(times) else np.zeros(len(points), np.int64)
-    stamp_ns = round(stamp * 1e9)
-    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
-    header_fields = {"stamp": types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), "frame_id": frame_id}
-    if "seq" in types["std_msgs/msg/Header"].__dataclass_fields__:  # ROS1
-        header_fields["seq"] = 0
+    point = types[f"{msgtype.split('/')[0]}/msg/CustomPoint"]
     cloud = np.asarray(points, dtype=np.float32)
     return types[msgtype](
-        header=types["std_msgs/msg/Header"](**header_fields),
-        timebase=stamp_ns,
+        header=ros_header(typestore, stamp, frame_id),
+        timebase=round(stamp * 1e9),
         point_num=len(cloud),
         lidar_id=0,
         rsvd=np.zeros(3, dtype=np.uint8),

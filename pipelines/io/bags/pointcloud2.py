@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 from rosbags.typesys.store import Typestore
 
-from pipelines.io.lidar_points import relative_seconds, returns, time_field
+from pipelines.io.lidar_points import nanoseconds_after_stamp, relative_seconds, returns, time_field
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 LAYOUTS = ("compact", "ouster")
@@ -97,12 +97,8 @@ def encode_pointcloud2(
         big = big or dtype.byteorder == ">"
     rows = np.zeros((height, row_step), dtype=np.uint8)
     rows[:, : width * point_step] = np.ascontiguousarray(cloud).view(np.uint8).reshape(height, -1)
-    sec, nanosec = divmod(round(stamp * 1e9), 1_000_000_000)
-    header_fields = {"stamp": types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), "frame_id": frame_id}
-    if "seq" in types["std_msgs/msg/Header"].__dataclass_fields__:  # ROS1
-        header_fields["seq"] = 0
     return types[POINTCLOUD2](
-        header=types["std_msgs/msg/Header"](**header_fields),
+        header=ros_header(typestore, stamp, frame_id),
         height=height,
         width=width,
         fields=fields,
@@ -112,6 +108,16 @@ def encode_pointcloud2(
         data=rows.reshape(-1),
         is_dense=all(np.isfinite(cloud[a]).all() for a in "xyz" if a in cloud.dtype.names),
     )
+
+
+def ros_header(typestore: Typestore, stamp: float, frame_id: str) -> Any:
+    """A std_msgs/Header of `typestore` (ROS1's with seq 0, or ROS2's) stamped `stamp` [s]."""
+    types = typestore.types
+    sec, nanosec = divmod(round(stamp * 1e9), 1_000_000_000)
+    fields = {"stamp": types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), "frame_id": frame_id}
+    if "seq" in types["std_msgs/msg/Header"].__dataclass_fields__:  # ROS1
+        fields["seq"] = 0
+    return types["std_msgs/msg/Header"](**fields)
 
 
 def scan_cloud(points: np.ndarray, times: np.ndarray, layout: str = "compact") -> np.ndarray:
@@ -124,8 +130,7 @@ def scan_cloud(points: np.ndarray, times: np.ndarray, layout: str = "compact") -
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r}; choose from {', '.join(LAYOUTS)}")
     has_times = len(times) > 0
-    if has_times and (len(times) != len(points) or times.min() < 0 or times.max() >= 2**32 * 1e-9):
-        raise ValueError("times must be one per point, within [0, 4.29) s of the stamp")
+    nanoseconds = nanoseconds_after_stamp(times, len(points))
     if layout == "ouster":
         dtype = np.dtype(
             {
@@ -142,7 +147,7 @@ def scan_cloud(points: np.ndarray, times: np.ndarray, layout: str = "compact") -
     for k, axis in enumerate("xyz"):
         cloud[axis] = points[:, k]
     if has_times:
-        cloud["t"] = np.round(times * 1e9)
+        cloud["t"] = nanoseconds
     if layout == "ouster":
         cloud["range"] = np.round(np.linalg.norm(points, axis=1) * 1000.0)
     return cloud
