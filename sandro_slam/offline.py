@@ -97,8 +97,8 @@ class OfflineSlam:
             stopwatch = Stopwatch("odometry", "loop_closure", "optimization")
             frontend = Frontend(config, background or self.module, stopwatch, odometry)
             skipped, added = [], []  # indices of the input frames
-            data = config.odometry
-            grid = (data.mapping.voxel_size, data.data.min_range, data.data.max_range)
+            kiss = config.odometry
+            grid = (kiss.mapping.voxel_size, kiss.data.min_range, kiss.data.max_range)
             sparse = SparseScans(
                 occupied_voxels(scan.points, *grid) for _, scan in head[:VOXEL_COUNT_SCANS] if len(scan.points)
             )
