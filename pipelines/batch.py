@@ -23,6 +23,7 @@ from pathlib import Path
 from pipelines.cli.entry import one_line
 from pipelines.cluster import ray_session, threads_limited
 from pipelines.io.atomic import write_text_atomic
+from pipelines.io.bags.poses import is_topic_name
 from sandro_slam import SlamConfig
 
 SUMMARY_FIELDS = [
@@ -41,23 +42,28 @@ class Job:
     fmt: str | None = None
     topic: str | None = None
     rate: float | None = None
-    gt: Path | None = None
-    odometry: Path | None = None
+    gt: str | None = None  # a trajectory file, or a topic of poses of the input bag
+    odometry: str | None = None
     max_frames: int | None = None
     map_voxel: float = 0.2
     threads: int = 0  # threads the run may use; 0: all
 
 
 def jobs_for(inputs: list[Path], out: Path, gt: str | None = None, odometry: str | None = None, **common) -> list[Job]:
-    """A Job per input, its results under OUT/<name>; `gt` and `odometry` are paths or, for several inputs,
-    patterns where {name} stands for the input's name (the stem of a file, the name of a folder).
+    """A Job per input, its results under OUT/<name>; `gt` and `odometry` are trajectory files or, for several
+    inputs, patterns where {name} stands for the input's name (the stem of a file, the name of a folder), or a topic
+    of poses every input bag holds (`io.inputs.read_poses`).
 
     Raises:
-        ValueError: several inputs and a `gt` or `odometry` without {name}.
+        ValueError: several inputs and a `gt` or `odometry` that is neither a pattern nor a topic name.
     """
     for option, value in (("--gt", gt), ("--odometry", odometry)):
-        if value is not None and len(inputs) > 1 and "{name}" not in value:
-            raise ValueError(f"{option} {value}: with several inputs, a pattern with {{name}} (e.g. gt/{{name}}.tum)")
+        if value is None or len(inputs) == 1 or "{name}" in value:
+            continue
+        if Path(value).is_file() or not is_topic_name(value):
+            raise ValueError(
+                f"{option} {value}: with several inputs, a pattern with {{name}} (e.g. gt/{{name}}.tum) or a topic"
+            )
     jobs, taken = [], set()
     for path in inputs:
         stem = path.name if path.is_dir() else path.stem
@@ -68,8 +74,8 @@ def jobs_for(inputs: list[Path], out: Path, gt: str | None = None, odometry: str
         taken.add(name)
         jobs.append(Job(
             path, out / name,
-            gt=Path(gt.replace("{name}", stem)) if gt is not None else None,
-            odometry=Path(odometry.replace("{name}", stem)) if odometry is not None else None,
+            gt=gt.replace("{name}", stem) if gt is not None else None,
+            odometry=odometry.replace("{name}", stem) if odometry is not None else None,
             **common,
         ))  # fmt: skip
     return jobs
@@ -78,15 +84,15 @@ def jobs_for(inputs: list[Path], out: Path, gt: str | None = None, odometry: str
 def run_job(job: Job, ctrl_c: bool = False) -> dict:
     """Run one input; returns its summary row. Every error of the input becomes status 'failed' with the error's
     one line. `ctrl_c`: the first Ctrl-C stops reading this input and still writes its results (`run_input`)."""
-    from pipelines.io.trajectory import read_trajectory
+    from pipelines.io.inputs import read_poses
     from pipelines.slam_run import run_input
 
     try:
         with _threads_limited(job.config, job.threads) as config:
             folder, metrics = run_input(
                 job.input, job.out, config, fmt=job.fmt, topic=job.topic, rate=job.rate,
-                ground_truth=read_trajectory(job.gt) if job.gt is not None else None,
-                odometry=read_trajectory(job.odometry) if job.odometry is not None else None,
+                ground_truth=read_poses(job.gt, job.input, job.fmt) if job.gt is not None else None,
+                odometry=read_poses(job.odometry, job.input, job.fmt) if job.odometry is not None else None,
                 max_frames=job.max_frames, map_voxel=job.map_voxel, ctrl_c=ctrl_c,
             )  # fmt: skip
     except Exception as error:  # noqa: BLE001 - a corrupt input may fail anywhere; the batch goes on

@@ -10,11 +10,13 @@ from collections import Counter
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+import numpy as np
+
 from pipelines.evaluation import evaluate, match_ground_truth
 from pipelines.io.atomic import link_latest, new_run_folder
 from pipelines.io.inputs import Poses, open_input
 from pipelines.io.slam_results import write_results
-from sandro_slam import GivenPoses, OfflineSlam, SlamConfig, SlamResult
+from sandro_slam import GivenPoses, OfflineSlam, Scan, SlamConfig, SlamResult
 
 GT_MAX_GAP = 0.25  # [s] ground-truth samples farther apart than this are not interpolated between
 
@@ -50,7 +52,14 @@ def run_input(
     with open_input(path, fmt, topic, rate) as source:
         ground_truth = ground_truth if ground_truth is not None else source.ground_truth
         given = _given_poses(odometry if odometry is not None else source.odometry, len(source.scans))
-        for note in source.notes:
+        notes = list(source.notes)
+        if source.pose_topics and given is None:
+            listing = ", ".join(f"{name} ({kind.replace('/msg/', '/')})" for name, kind in source.pose_topics.items())
+            notes.append(
+                f"the bag also holds poses: {listing}; --odometry TOPIC takes them instead of KISS-ICP's (the scans "
+                "deskewed, in the frame of those poses), --gt TOPIC compares with them"
+            )
+        for note in notes:
             print(f"sandro-slam: {note}", file=sys.stderr, flush=True)
         try:
             folder = new_run_folder(out)
@@ -60,6 +69,8 @@ def run_input(
         reading = _Clock()
         stop = _StopRequest(ctrl_c)
         frames = _timed(itertools.islice(source.scans, total), reading)
+        if given is not None:
+            frames = WorldFrameCheck(given).watch(frames)
         if progress:
             from tqdm import tqdm
 
@@ -123,6 +134,59 @@ def run_metrics(result: SlamResult, wall: float, read_seconds: float) -> dict:
         "read_s": read_seconds,
         "timings_s": result.timings,
     }
+
+
+class WorldFrameCheck:
+    """Tells, while scans stream past, whether scans given with an odometry are in the odometry's world frame instead
+    of the sensor frame (FAST-LIO2's /cloud_registered picked instead of /cloud_registered_body): each would be
+    moved by its pose a second time.
+
+    Compares two ways to read each scan's centre c (mean point) with its pose (R, t): as given (sensor frame), and
+    as R^T (c - t) (world frame). In the scan's true frame the centre stays near the sensor while the drive moves
+    on; read in the other frame it travels with the drive. World frame: the second varies far less than the first,
+    and the first by more than `MIN_SPREAD` (rms about its mean), over at least `MIN_SCANS` scans.
+    """
+
+    MIN_SCANS = 50
+    MIN_SPREAD = 10.0  # [m]
+
+    def __init__(self, given: GivenPoses) -> None:
+        self.given = given
+        self.world_frame = False
+        self._count = 0
+        self._mean = np.zeros((2, 3))  # per reading: the running mean of the centre [m] and of its squared norm [m^2]
+        self._mean_square = np.zeros(2)
+
+    def watch(self, frames: Iterable) -> Iterator:
+        """The frames, unchanged; a warning on stderr the first time they look like world-frame scans."""
+        for index, frame in enumerate(frames):
+            if not self.world_frame and self.add(index, frame):
+                print(
+                    "sandro-slam: warning: the scans seem to be in the odometry's world frame, not the sensor's "
+                    "(their centres follow the poses): give the scans in the sensor frame (FAST-LIO2: "
+                    "/cloud_registered_body, LIO-SAM: /lio_sam/deskew/cloud_deskewed)",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            yield frame
+
+    def add(self, index: int, scan: Scan) -> bool:
+        """Take scan `index` (the index among all scans read); returns `world_frame`."""
+        points = np.asarray(scan.points)
+        points = points[np.isfinite(points).all(axis=1)]
+        pose = self.given.at(index, scan.timestamp) if len(points) else None
+        if pose is None:
+            return self.world_frame
+        centre = points.mean(axis=0)
+        readings = np.stack([centre, pose[:3, :3].T @ (centre - pose[:3, 3])])
+        self._count += 1
+        self._mean += (readings - self._mean) / self._count
+        self._mean_square += (np.einsum("ij,ij->i", readings, readings) - self._mean_square) / self._count
+        spread = np.sqrt(np.maximum(self._mean_square - np.einsum("ij,ij->i", self._mean, self._mean), 0.0))
+        self.world_frame = bool(
+            self._count >= self.MIN_SCANS and spread[0] > self.MIN_SPREAD and spread[1] < 0.5 * spread[0]
+        )
+        return self.world_frame
 
 
 class _Clock:

@@ -22,7 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pipelines.cli.entry import CommandError, Parser, run_command
-from pipelines.io.bags import MESSAGES
+from pipelines.io.bags import MESSAGES, is_topic_name
 from pipelines.simulation.export import BAG_FORMATS, DEFAULT_START_TIME, FOLDER_FORMATS, ground_truth_path, simulate
 
 
@@ -78,6 +78,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="message type of a bag's scans: sensor_msgs/PointCloud2 or Livox CustomMsg (default pointcloud2)",
     )
     parser.add_argument(
+        "--odometry-topic",
+        metavar="TOPIC",
+        help="write a LiDAR-inertial front end's output instead of raw scans: the scans deskewed (no per-point "
+        "times) and its odometry (the true poses drifting by --drift) as nav_msgs/Odometry on TOPIC",
+    )
+    parser.add_argument(
         "--start-time",
         type=_bounded(float, 0.0, "a number >= 0"),
         default=DEFAULT_START_TIME,
@@ -86,7 +92,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     at_least_zero = _bounded(float, 0.0, "a number >= 0")
     parser.add_argument("--drift", type=at_least_zero, default=0.5, metavar="PERCENT",
-                        help="drift of a keyframe dump's odometry in %% of the distance (default 0.5)")  # fmt: skip
+                        help="drift of the odometry of a keyframe dump or of --odometry-topic in %% of the distance "
+                        "(default 0.5)")  # fmt: skip
     parser.add_argument("--force", action="store_true", help="replace OUT and its ground truth if they exist")
     return parser
 
@@ -103,6 +110,10 @@ def _run(args: argparse.Namespace) -> int:
         raise CommandError(f"OUT must end in .bag for --format ros1, and not otherwise (got {out} for {fmt})")
     if args.message != "pointcloud2" and fmt not in BAG_FORMATS:
         raise CommandError(f"--message {args.message} is for bags, not for --format {fmt}")
+    if args.odometry_topic is not None and fmt not in BAG_FORMATS:
+        raise CommandError(f"--odometry-topic is for bags, not for --format {fmt}")
+    if args.odometry_topic is not None and not is_topic_name(args.odometry_topic):
+        raise CommandError(f"--odometry-topic {args.odometry_topic}: not a topic name")
     existing = [p for p in (out, ground_truth_path(out)) if p.exists() or p.is_symlink()]
     if existing and not args.force:
         raise CommandError(f"{existing[0]} exists (use --force to replace it)")
@@ -121,10 +132,13 @@ def _run(args: argparse.Namespace) -> int:
             overwrite=args.force,
             progress=True,
             message=args.message,
+            odometry_topic=args.odometry_topic,
         )
     except OSError as error:
         raise CommandError(f"cannot write {out}: {error.strerror or error}") from None
     where = f" on {args.topic}" if fmt in BAG_FORMATS else ""
+    if args.odometry_topic is not None:
+        where += f", deskewed, odometry on {args.odometry_topic}"
     print(f"wrote {out} ({fmt}, {count} scans{where}) and {ground_truth_path(out)}")
     return 0
 

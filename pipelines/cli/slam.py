@@ -51,10 +51,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--rate", type=float, help="scans per second [Hz] of a scan folder without other times")
     parser.add_argument("--odometry", metavar="POSES", help="poses of your own front end instead of "
-                        "KISS-ICP: TUM (by time) or KITTI (one per scan); the scans deskewed already")  # fmt: skip
+                        "KISS-ICP: TUM (by time), KITTI (one per scan) or a bag's topic of poses (nav_msgs/Odometry, "
+                        "...); the scans deskewed already")  # fmt: skip
     parser.add_argument("--config", type=Path, help="SlamConfig YAML (default: configs/default.yaml's values)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"base results folder (default {DEFAULT_OUT})")
-    parser.add_argument("--gt", help="ground truth: TUM (matched by time) or KITTI (one pose per scan)")
+    parser.add_argument("--gt", help="ground truth: TUM (matched by time), KITTI (one pose per scan) or a bag's "
+                        "topic of poses")  # fmt: skip
     parser.add_argument("--max-frames", type=int, help="process at most this many scans")
     parser.add_argument("--refine", action=argparse.BooleanOptionalAction, help="a second pass: every scan "
                         "deskewed again, registered onto the loop-corrected map (default: the config's)")  # fmt: skip
@@ -94,11 +96,11 @@ def _run(args: argparse.Namespace) -> int:
         config.refine = args.refine
     if len(args.input) > 1 or args.workers is not None or args.ray is not None or args.resume:
         return _run_batch(args, config)
-    from pipelines.io.trajectory import read_trajectory
+    from pipelines.io.inputs import read_poses
     from pipelines.slam_run import run_input
 
-    ground_truth = read_trajectory(Path(args.gt)) if args.gt is not None else None
-    odometry = read_trajectory(Path(args.odometry)) if args.odometry is not None else None
+    ground_truth = read_poses(args.gt, args.input[0], args.format) if args.gt is not None else None
+    odometry = read_poses(args.odometry, args.input[0], args.format) if args.odometry is not None else None
     folder, metrics = run_input(
         args.input[0],
         args.out,

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.io.bags import BagScans
+from pipelines.io.bags import POSE_TYPES, BagScans, is_topic_name, pose_topics, read_pose_topic
 from pipelines.io.scan_folder import ScanFolder
 from pipelines.io.trajectory import read_trajectory
 
@@ -29,6 +29,7 @@ class ScanInput:
     ground_truth: Poses | None = None
     odometry: Poses | None = None
     notes: list[str] = field(default_factory=list)  # what was found beside the scans, for the user
+    pose_topics: dict[str, str] = field(default_factory=dict)  # a bag's topics of poses: {topic: message type}
 
     def __enter__(self) -> ScanInput:
         return self
@@ -72,7 +73,8 @@ def open_input(path: str | Path, fmt: str | None = None, topic: str | None = Non
     if fmt == "bag":
         scans = BagScans(path, topic)
         description = {"input": str(path), "format": "bag", "topic": scans.topic, "messages": len(scans)}
-        result = ScanInput(scans, {**description, "stamps": scans.stamps})
+        poses = {name: kind for name, kind in scans.topic_types.items() if kind in POSE_TYPES}
+        result = ScanInput(scans, {**description, "stamps": scans.stamps}, pose_topics=poses)
         if scans.stamps == "record":
             result.notes.append(f"{scans.topic}: header.stamp does not change, the scans are timed when recorded")
         return result
@@ -94,3 +96,22 @@ def open_input(path: str | Path, fmt: str | None = None, topic: str | None = Non
         result.odometry = read_trajectory(poses_file)
         result.notes.append(f"odometry: {poses_file} (a keyframe dump; --format folder to run KISS-ICP instead)")
     return result
+
+
+def read_poses(value: str, path: str | Path, fmt: str | None = None) -> Poses:
+    """The poses that `value` names for the input at `path` (format `fmt`, None: `detect_format`): a trajectory file
+    (`read_trajectory`) or, for a bag, one of its topics of poses (`read_pose_topic`: a front end's
+    nav_msgs/Odometry, a ground truth's geometry_msgs poses).
+
+    Raises:
+        ValueError (BagError for bags): `value` is neither, or cannot be read.
+    """
+    path = Path(path)
+    if Path(value).is_file() or not is_topic_name(value) or (fmt or detect_format(path)) != "bag":
+        return read_trajectory(Path(value))
+    topics = pose_topics(path)
+    if value not in topics:
+        listing = ", ".join(f"{name} ({kind.replace('/msg/', '/')})" for name, kind in topics.items()) or "none"
+        raise ValueError(f"{value}: neither a trajectory file nor a topic of poses in {path} (its topics of poses: "
+                         f"{listing})")  # fmt: skip
+    return read_pose_topic(path, value)

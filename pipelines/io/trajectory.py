@@ -23,7 +23,7 @@ def write_tum(path: Path, timestamps: np.ndarray, poses: np.ndarray) -> None:
 def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(timestamps (N,), poses (N, 4, 4)) from a TUM file; ValueError if it is not one."""
     rows = _rows(path, 8, "a TUM trajectory has 8 columns (t x y z qx qy qz qw)")
-    return rows[:, 0], _poses(rows[:, 1:])
+    return rows[:, 0], poses_from_rows(rows[:, 1:])
 
 
 def write_kitti(path: Path, poses: np.ndarray) -> None:
@@ -106,10 +106,10 @@ def read_keyframe_poses(path: str | Path) -> dict[int, np.ndarray]:
             rows.append([float(v) for v in fields[1:]])
         except ValueError as error:
             raise ValueError(f"{path}:{line_no}: {error}") from None
-    return dict(zip(keys, _poses(np.array(rows).reshape(-1, 7))))
+    return dict(zip(keys, poses_from_rows(np.array(rows).reshape(-1, 7))))
 
 
-def _poses(rows: np.ndarray) -> np.ndarray:
+def poses_from_rows(rows: np.ndarray) -> np.ndarray:
     """(N, 4, 4) poses from (N, 7) rows `x y z qx qy qz qw` (scalar-last quaternions)."""
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
     if len(rows):

@@ -49,12 +49,16 @@ def simulate(
     overwrite: bool = False,
     progress: bool = False,
     message: str = "pointcloud2",
+    odometry_topic: str | None = None,
 ) -> int:
     """Simulate a drive (`simulate_sequence(seed, laps, frames, noise)`) into `out` as a bag (`BAG_FORMATS`) or a
     scan folder (`FOLDER_FORMATS`), and its ground truth T_world_sensor into `ground_truth_path(out)`, at 100 Hz on
     the clock of the scans (sweep starts from `start_time`); returns the number of scans. Both appear together at
     the end (each written atomically), or neither on an error. `topic` and `message` (`pipelines.io.bags.MESSAGES`)
-    are the bag's; `drift` the keyframe dump's."""
+    are the bag's. With `odometry_topic` a bag holds what a LiDAR-inertial front end (FAST-LIO2, LIO-SAM)
+    publishes: each scan deskewed with the true motion to its sweep's end, without per-point times, and on that
+    topic its odometry as nav_msgs/Odometry, the true poses drifting by `drift` of the distance (as the keyframe
+    dump's)."""
     if fmt not in BAG_FORMATS + FOLDER_FORMATS:
         raise ValueError(f"unknown format {fmt!r}; choose from {', '.join(BAG_FORMATS + FOLDER_FORMATS)}")
     sequence = simulate_sequence(seed=seed, laps=laps, frames=frames, noise_sigma=noise)
@@ -67,6 +71,14 @@ def simulate(
         indices = tqdm(indices, unit="scan", desc="sandro-simulate", dynamic_ncols=True)
     with atomic_path(ground_truth_path(out)) as gt_tmp:
         write_tum(gt_tmp, start_time + gt_times, sequence.poses_at(gt_times))
+        if fmt in BAG_FORMATS and odometry_topic is not None:
+            deskewed = [sequence.deskewed(i) for i in indices]
+            scans = [Scan(start_time + scan.timestamp, scan.points, scan.times) for scan, _ in deskewed]
+            odometry = drifted(np.array([T for _, T in deskewed]), drift)
+            return write_bag(
+                out, fmt, scans, topic=topic, overwrite=overwrite, message=message,
+                odometry=(np.array([scan.timestamp for scan in scans]), odometry), odometry_topic=odometry_topic,
+            )  # fmt: skip
         if fmt in BAG_FORMATS:
             scans = (sequence.frame(i) for i in indices)
             return write_bag(

@@ -99,10 +99,12 @@ def test_jobs_get_unique_names_and_need_a_pattern_for_several_inputs(tmp_path):
     (tmp_path / "scans").mkdir()
     jobs = jobs_for(inputs, tmp_path / "out", gt="truth/{name}.tum", config=SlamConfig())
     assert [job.out.name for job in jobs] == ["drive", "drive-2", "scans"]
-    assert [job.gt for job in jobs] == [Path("truth/drive.tum"), Path("truth/drive.tum"), Path("truth/scans.tum")]
+    assert [job.gt for job in jobs] == ["truth/drive.tum", "truth/drive.tum", "truth/scans.tum"]
     with pytest.raises(ValueError, match="{name}"):
         jobs_for(inputs, tmp_path / "out", gt="truth.tum", config=SlamConfig())
-    assert jobs_for(inputs[:1], tmp_path / "out", gt="truth.tum", config=SlamConfig())[0].gt == Path("truth.tum")
+    assert jobs_for(inputs[:1], tmp_path / "out", gt="truth.tum", config=SlamConfig())[0].gt == "truth.tum"
+    jobs = jobs_for(inputs, tmp_path / "out", odometry="/lio/odometry", config=SlamConfig())  # a topic of each bag
+    assert [job.odometry for job in jobs] == ["/lio/odometry"] * 3
 
 
 @pytest.mark.slow

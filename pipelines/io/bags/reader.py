@@ -36,7 +36,8 @@ class BagError(ValueError):
     """A bag that cannot be read as asked; the message is one line naming the file (and the topic)."""
 
 
-def _one_line(error: BaseException) -> str:
+def one_line(error: BaseException) -> str:
+    """An error's message on one line of at most 200 characters."""
     text = " ".join(str(error).split()) or type(error).__name__
     return text if len(text) <= 200 else text[:197] + "..."
 
@@ -68,14 +69,14 @@ def _storage_source(path: Path) -> Path:
     return path
 
 
-def _open_reader(path: Path) -> AnyReader:
-    """An open AnyReader over `path`."""
+def open_reader(path: Path) -> AnyReader:
+    """An open AnyReader over the bag at `path`; BagError naming it if it cannot be opened."""
     source = _storage_source(path)
     try:
         reader = AnyReader([source], default_typestore=get_typestore(Stores.LATEST))
         reader.open()
     except Exception as error:  # rosbags raises many types on bad files (ReaderError, struct.error, ...)
-        raise BagError(f"{path}: corrupt or truncated bag ({_one_line(error)})") from None
+        raise BagError(f"{path}: corrupt or truncated bag ({one_line(error)})") from None
     return reader
 
 
@@ -90,7 +91,7 @@ def _listing(counts: dict[str, int]) -> str:
 def pointcloud_topics(path: str | Path) -> dict[str, int]:
     """The point cloud topics (PointCloud2 or Livox CustomMsg) of a bag and their message counts; BagError if it
     is unreadable."""
-    reader = _open_reader(Path(path))
+    reader = open_reader(Path(path))
     try:
         return _scan_counts(reader)
     finally:
@@ -117,7 +118,8 @@ class BagScans:
     """The scans of one point cloud topic (PointCloud2 or Livox CustomMsg) of a bag, streamed one message at a time.
 
     `BagScans(path, topic=None)` opens the bag (topic None: its only point cloud topic) and raises BagError
-    when it cannot. Attributes: `path`, `topic`, `count` (messages), `stamps` ("header", or "record" when the
+    when it cannot. Attributes: `path`, `topic`, `count` (messages), `topic_types` ({topic: message type} of every
+    topic of the bag that holds messages), `stamps` ("header", or "record" when the
     first and last messages carry the same header.stamp, as drivers that leave it zero do: each scan's stamp is
     then the time it was recorded), `duration` (last minus first stamp [s], of the first and last recorded
     messages). Iterating yields (stamp, points, times) (see the module docstring), in record order, again from
@@ -127,11 +129,12 @@ class BagScans:
 
     def __init__(self, path: str | Path, topic: str | None = None) -> None:
         self.path = Path(path)
-        self._reader: AnyReader | None = _open_reader(self.path)
+        self._reader: AnyReader | None = open_reader(self.path)
         try:
             self.topic = _choose_topic(self.path, self._reader, topic)
             self._connections = [c for c in self._reader.connections if c.topic == self.topic]
             self.count = _scan_counts(self._reader)[self.topic]
+            self.topic_types = {name: info.msgtype for name, info in self._reader.topics.items() if info.msgcount}
             self._custom_msg = self._reader.topics[self.topic].msgtype in CUSTOM_MSG_TYPES
             self.stamps, self.duration = self._stamps_and_duration()
         except BaseException:
@@ -168,7 +171,7 @@ class BagScans:
             try:
                 item = next(messages, None)
             except Exception as error:  # corrupt or truncated data: rosbags raises many types
-                raise BagError(f"{self.path}: corrupt or truncated bag ({_one_line(error)})") from None
+                raise BagError(f"{self.path}: corrupt or truncated bag ({one_line(error)})") from None
             if item is None:
                 return
             yield item
@@ -184,7 +187,7 @@ class BagScans:
         try:
             msg = self._open().deserialize(raw, connection.msgtype)
         except Exception as error:
-            raise BagError(f"{where}: cannot deserialize ({_one_line(error)})") from None
+            raise BagError(f"{where}: cannot deserialize ({one_line(error)})") from None
         try:
             points, times = pointcloud2_arrays(msg)
         except PointCloud2Error as error:

@@ -1,5 +1,5 @@
 """Writing scans into new ROS bags as sensor_msgs/PointCloud2 or Livox CustomMsg messages (ROS1 .bag, ROS2 sqlite3
-or mcap)."""
+or mcap), and beside them, optionally, a front end's odometry as nav_msgs/Odometry."""
 
 from __future__ import annotations
 
@@ -13,10 +13,12 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
+from scipy.spatial.transform import Rotation
 
 from pipelines.io.atomic import atomic_dir, atomic_path
 from pipelines.io.bags.livox import CUSTOM_MSG_TYPES, encode_custom_msg, register_custom_msg
-from pipelines.io.bags.pointcloud2 import POINTCLOUD2, encode_pointcloud2, scan_cloud
+from pipelines.io.bags.pointcloud2 import POINTCLOUD2, encode_pointcloud2, ros_header, scan_cloud
+from pipelines.io.bags.poses import ODOMETRY
 from sandro_slam.scan import Scan
 
 FORMATS = ("ros1", "ros2-sqlite3", "ros2-mcap")
@@ -46,8 +48,10 @@ def write_bag(
     layout: str = "compact",
     overwrite: bool = False,
     message: str = "pointcloud2",
+    odometry: tuple[np.ndarray, np.ndarray] | None = None,
+    odometry_topic: str = "/odometry",
 ) -> int:
-    """Write scans as messages of type `message` (`MESSAGES`) into a new bag; returns the number of messages.
+    """Write scans as messages of type `message` (`MESSAGES`) into a new bag; returns the number of scan messages.
 
     Args:
         path: a .bag file for fmt "ros1"; a bag folder (not ending in .bag) for "ros2-sqlite3"/"ros2-mcap".
@@ -55,6 +59,9 @@ def write_bag(
             consumed one at a time. Each message is recorded when its sweep ends (stamp + max(times)), as a
             driver publishes it, so the record time differs from header.stamp.
         layout: the point layout of PointCloud2 messages (`scan_cloud`).
+        odometry: (times (M,) [s], T_odom_sensor (M, 4, 4)) written on `odometry_topic` as nav_msgs/Odometry
+            (frame "odom", child frame `frame_id`, recorded at their stamps), as a LiDAR-inertial front end
+            publishes its poses beside its deskewed scans.
         overwrite: replace an existing `path`; otherwise FileExistsError.
 
     Written atomically: under a temporary name beside `path`, renamed at the end, removed on any error or
@@ -80,14 +87,44 @@ def write_bag(
             return encode_custom_msg(typestore, msgtype, stamp, points, times, frame_id)
         return encode_pointcloud2(typestore, stamp, scan_cloud(points, times, layout), frame_id)
 
+    serialize = typestore.serialize_ros1 if fmt == "ros1" else typestore.serialize_cdr
+    poses = [] if odometry is None else _odometry_messages(typestore, serialize, *odometry, frame_id)
     if fmt == "ros1":
         with atomic_path(path) as tmp, Writer1(tmp) as writer:
             connection = writer.add_connection(topic, msgtype, typestore=typestore)
-            return _write_scans(writer, connection, msgtype, typestore.serialize_ros1, encode, scans)
+            pose_connection = writer.add_connection(odometry_topic, ODOMETRY, typestore=typestore) if poses else None
+            return _write_scans(writer, connection, msgtype, serialize, encode, scans, pose_connection, poses)
     plugin = StoragePlugin.SQLITE3 if fmt == "ros2-sqlite3" else StoragePlugin.MCAP
     with atomic_dir(path) as tmp, Writer2(tmp, version=Writer2.VERSION_LATEST, storage_plugin=plugin) as writer:
         connection = writer.add_connection(topic, msgtype, typestore=typestore)
-        return _write_scans(writer, connection, msgtype, typestore.serialize_cdr, encode, scans)
+        pose_connection = writer.add_connection(odometry_topic, ODOMETRY, typestore=typestore) if poses else None
+        return _write_scans(writer, connection, msgtype, serialize, encode, scans, pose_connection, poses)
+
+
+def _odometry_messages(
+    typestore: Any, serialize: Callable[[Any, str], Any], times: np.ndarray, poses: np.ndarray, frame_id: str
+) -> list[tuple[int, Any]]:
+    """(record time [ns], serialized nav_msgs/Odometry) of each pose, in time order."""
+    types = typestore.types
+    times, poses = np.asarray(times, dtype=np.float64), np.asarray(poses, dtype=np.float64)
+    quaternions = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x y z w
+    zero = types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    messages = []
+    for stamp, T, q in zip(times, poses, quaternions):
+        pose = types["geometry_msgs/msg/Pose"](
+            position=types["geometry_msgs/msg/Point"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+            orientation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+        )
+        msg = types[ODOMETRY](
+            header=ros_header(typestore, stamp, "odom"),
+            child_frame_id=frame_id,
+            pose=types["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+            twist=types["geometry_msgs/msg/TwistWithCovariance"](
+                twist=types["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36)
+            ),
+        )
+        messages.append((round(stamp * 1e9), serialize(msg, ODOMETRY)))
+    return sorted(messages, key=lambda item: item[0])
 
 
 def _write_scans(
@@ -97,12 +134,22 @@ def _write_scans(
     serialize: Callable[[Any, str], Any],
     encode: Callable[[float, np.ndarray, np.ndarray], Any],
     scans: Iterable[Scan],
+    pose_connection: Any = None,
+    poses: list[tuple[int, Any]] = (),
 ) -> int:
-    count = 0
+    """Write the scans, and the serialized `poses` on `pose_connection` interleaved with them by record time."""
+    count, pending = 0, iter(poses)
+    pose = next(pending, None)
     for stamp, points, times in scans:
         times = np.asarray(times, dtype=np.float64)
         msg = encode(stamp, np.asarray(points), times)
-        end = stamp + (float(times.max()) if len(times) else 0.0)
-        writer.write(connection, round(end * 1e9), serialize(msg, msgtype))
+        end = round((stamp + (float(times.max()) if len(times) else 0.0)) * 1e9)
+        while pose is not None and pose[0] <= end:
+            writer.write(pose_connection, *pose)
+            pose = next(pending, None)
+        writer.write(connection, end, serialize(msg, msgtype))
         count += 1
+    while pose is not None:
+        writer.write(pose_connection, *pose)
+        pose = next(pending, None)
     return count

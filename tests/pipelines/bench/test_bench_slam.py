@@ -38,6 +38,8 @@ def test_bag_experiment_runs_a_bag_end_to_end_and_times_reading(tmp_path):
         assert 0 < metrics[f"bag_{name}_read_share"] < 1 and metrics[f"bag_{name}_read_realtime_factor_64beam"] > 0
         assert (tmp_path / f"sandro-slam_{name}" / "latest" / "metrics.json").is_file()
     assert metrics["bag_ros1_livox_ate_kiss_icp"] == pytest.approx(metrics["bag_ros2-mcap_ate_kiss_icp"], abs=0.01)
+    assert 0 < metrics["bag_ros2_lio_ate_given"] < 0.3 and metrics["bag_ros2_lio_ate_sandro_slam"] < 0.3
+    assert "bag_ros2_lio_read_realtime_factor_64beam" not in metrics
     assert not (tmp_path / "bags").exists()  # the bags are removed
 
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from pipelines.cli.simulate import main
-from pipelines.io.bags import BagScans
+from pipelines.io.bags import BagScans, read_pose_topic
 from pipelines.io.trajectory import read_tum
 from pipelines.simulation import simulate_sequence
 from pipelines.simulation.export import ground_truth_path
@@ -45,6 +45,8 @@ def test_simulate_cli(tmp_path, capsys):
         ["x.bag", "--frames", "two"],
         ["x.bag", "--message", "xyz"],
         ["y", "--format", "kitti", "--message", "livox"],
+        ["y", "--format", "keyframes", "--odometry-topic", "/odometry"],
+        ["x.bag", "--odometry-topic", "odometry.tum"],
     ]
     for arguments in bad_arguments:
         assert main([str(tmp_path / arguments[0]), *arguments[1:]] if arguments else []) == 2
@@ -65,3 +67,17 @@ def test_simulate_scan_folders(tmp_path, capsys, fmt, files):
     assert (out / "poses.txt").is_file() == (fmt != "folder")
     assert main([str(out), "--format", fmt, "--frames", "3"]) == 2  # refuses to overwrite
     assert "exists (use --force" in capsys.readouterr().err
+
+
+def test_simulate_a_front_ends_bag(tmp_path, capsys):
+    out = tmp_path / "lio.bag"
+    assert main([str(out), "--frames", "4", "--odometry-topic", "/Odometry", "--drift", "0"]) == 0
+    assert "deskewed, odometry on /Odometry" in capsys.readouterr().out
+    times, poses = read_pose_topic(out, "/Odometry")
+    with BagScans(out) as bag:
+        scans = list(bag)
+    assert [stamp for stamp, _, _ in scans] == pytest.approx(times, abs=1e-6)  # a pose at each scan's stamp
+    assert all(len(scan_times) == 0 for _, _, scan_times in scans)  # deskewed: no per-point time
+    gt_times, gt_poses = read_tum(ground_truth_path(out))
+    at = np.searchsorted(gt_times, times - 1e-6)
+    np.testing.assert_allclose(poses[:, :3, 3], gt_poses[at, :3, 3], atol=2e-3)  # no drift: the truth

@@ -7,10 +7,13 @@ import numpy as np
 import pytest
 
 from pipelines.cli.slam import main
-from pipelines.io.bags import write_bag
+from pipelines.io.bags import BagScans, write_bag
+from pipelines.io.inputs import read_poses
 from pipelines.io.trajectory import read_tum, write_kitti
 from pipelines.simulation import simulate_sequence
 from pipelines.simulation.export import ground_truth_path, simulate
+from sandro_core.geometry import transform_points
+from sandro_slam import Scan
 
 FRAMES = 40
 OUTPUTS = [
@@ -82,6 +85,35 @@ def test_a_bag_without_per_point_times(tmp_path):
     assert main([str(tmp_path / "no_times.bag"), "--out", str(tmp_path / "r"), "--quiet"]) == 0
     metrics = json.loads((tmp_path / "r" / "latest" / "metrics.json").read_text())
     assert metrics["frames"] == 6 and metrics["frames_skipped"] == 0
+
+
+def test_a_front_ends_bag_runs_on_its_odometry_topic(tmp_path, capsys):
+    # What FAST-LIO2 records: deskewed scans and its odometry as nav_msgs/Odometry in one bag.
+    bag = tmp_path / "lio"
+    simulate(bag, "ros2-mcap", frames=60, odometry_topic="/odometry", drift=0.01)
+    out = tmp_path / "r"
+    assert main([str(bag), "--odometry", "/odometry", "--gt", str(ground_truth_path(bag)), "--out", str(out),
+                 "--quiet"]) == 0  # fmt: skip
+    err = capsys.readouterr().err
+    assert "also holds poses" not in err and "world frame" not in err, err
+    metrics = json.loads((out / "latest" / "metrics.json").read_text())
+    assert metrics["odometry"] == "given" and metrics["frames"] == 60 and metrics["frames_skipped"] == 0
+    assert 0.01 < metrics["ground_truth"]["ate_odometry_m"] < 0.3  # the drift of the topic's poses, not KISS-ICP's
+    odometry_times, odometry = read_tum(out / "latest" / "odometry.tum")
+    topic_times, topic = read_poses("/odometry", bag)
+    np.testing.assert_allclose(odometry_times, topic_times, atol=1e-6)
+    np.testing.assert_allclose(odometry[:, :3, 3], topic[:, :3, 3], atol=1e-6)
+
+    assert main([str(bag), "--max-frames", "3", "--out", str(out), "--quiet"]) == 0
+    assert "the bag also holds poses: /odometry (nav_msgs/Odometry); --odometry TOPIC" in capsys.readouterr().err
+
+    # The same scans in the odometry's world frame (FAST-LIO2's /cloud_registered): run, with a warning.
+    world = tmp_path / "world.bag"
+    with BagScans(bag) as scans:
+        moved = [Scan(t, transform_points(T, points), times) for (t, points, times), T in zip(scans, topic)]
+    write_bag(world, "ros1", moved, odometry=(topic_times, topic))
+    assert main([str(world), "--odometry", "/odometry", "--out", str(out), "--quiet"]) == 0
+    assert "warning: the scans seem to be in the odometry's world frame" in capsys.readouterr().err
 
 
 def test_missing_and_corrupt_bags(tmp_path, capsys):
