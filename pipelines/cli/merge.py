@@ -41,6 +41,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, required=True, help="output folder (new or empty)")
     parser.add_argument("--config", type=Path, help="SlamConfig YAML (its merge section; default: built-in values)")
     parser.add_argument("--topic", help="point cloud topic (PointCloud2 or Livox CustomMsg) of bags given as sessions")
+    parser.add_argument("--odometry", metavar="TOPIC", help="a topic of poses (nav_msgs/Odometry, ...) of the bags "
+                        "given as sessions: their front end's odometry instead of KISS-ICP's")  # fmt: skip
     parser.add_argument("--workers", type=int, default=1, help="submap descriptions and pair registrations at once "
                         "on a local Ray (default 1: in this process; more needs pip install '.[cluster]')")  # fmt: skip
     parser.add_argument("--ray", metavar="ADDRESS", help="run them on an existing Ray cluster ('auto': the one this "
@@ -58,6 +60,12 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     if len(args.sessions) < 2:
         raise CommandError("at least two sessions are needed")
+    from pipelines.io.bags.poses import is_topic_name
+
+    if args.odometry is not None and not is_topic_name(args.odometry):
+        raise CommandError(
+            f"--odometry {args.odometry}: not a topic name (a topic of poses of the bags, e.g. /Odometry)"
+        )
     if args.workers < 1 or args.threads_per_task < 0:
         raise CommandError("--workers must be at least 1 and --threads-per-task at least 0")
     parallel = args.workers > 1 or args.ray is not None
@@ -79,7 +87,9 @@ def _run(args: argparse.Namespace) -> int:
     with atomic_dir(args.out) as out, threads_limited(threads):
         out.mkdir()
         with ray_session(args.workers, args.ray, threads, warm_up=True) if parallel else nullcontext():
-            sessions = [_load_session(path, out / "sessions", config, args.topic) for path in args.sessions]
+            sessions = [
+                _load_session(path, out / "sessions", config, args.topic, args.odometry) for path in args.sessions
+            ]
             _unique_names(sessions)
             config = merge_config(config, sessions)
             result = merge_sessions(sessions, config, partial(ray_map, threads=threads) if parallel else serial_map)
@@ -108,16 +118,21 @@ def _is_input(path: Path) -> bool:
     )
 
 
-def _load_session(path: Path, bag_out: Path, config: SlamConfig, topic: str | None) -> Session:
-    """A results folder's session, or an input's after running sandro-slam on it into `bag_out`."""
+def _load_session(
+    path: Path, bag_out: Path, config: SlamConfig, topic: str | None, odometry: str | None = None
+) -> Session:
+    """A results folder's session, or an input's after running sandro-slam on it into `bag_out` (a bag on the
+    poses of its topic `odometry`, when given)."""
     from pipelines.io.session import read_session
 
     if _is_input(path):
+        from pipelines.io.inputs import detect_format, read_poses
         from pipelines.slam_run import run_input
 
         print(f"sandro-merge: processing {path} ...", flush=True)
         try:
-            folder, _ = run_input(path, bag_out, config, topic=topic)
+            poses = read_poses(odometry, path) if odometry is not None and detect_format(path) == "bag" else None
+            folder, _ = run_input(path, bag_out, config, topic=topic, odometry=poses)
         except Exception as error:  # the bag reader's own errors: one line, like the other bad inputs
             raise ValueError(f"{path}: {one_line(error)}") from None
         return read_session(folder)

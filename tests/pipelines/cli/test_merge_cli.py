@@ -5,6 +5,7 @@ import json
 import pytest
 
 from pipelines.cli.merge import main
+from pipelines.simulation.export import simulate
 
 
 @pytest.mark.slow
@@ -41,3 +42,23 @@ def test_non_empty_out_is_refused(tmp_path, capsys):
     assert main([str(tmp_path), str(tmp_path), "--out", str(tmp_path / "out")]) == 2
     assert "refusing to overwrite" in capsys.readouterr().err
     assert (tmp_path / "out" / "keep.txt").read_text() == "mine"
+
+
+@pytest.mark.slow
+def test_sandro_merge_on_two_front_end_bags_runs_on_their_odometry_topic(tmp_path, capsys):
+    bags = [tmp_path / "first.bag", tmp_path / "second.bag"]
+    for bag, drift in zip(bags, (0.0, 0.01)):  # the same street, odometry drifting differently
+        simulate(bag, "ros1", frames=50, odometry_topic="/odometry", drift=drift)
+    out = tmp_path / "merged"
+    assert main([*map(str, bags), "--odometry", "/odometry", "--out", str(out)]) == 0
+    assert len(json.loads((out / "summary.json").read_text())["joined"]) == 2
+    runs = [path for path in (out / "sessions").glob("*/metrics.json") if path.parent.name != "latest"]
+    assert len(runs) == 2 and all(json.loads(path.read_text())["odometry"] == "given" for path in runs)
+    assert "also holds poses" not in capsys.readouterr().err
+
+
+def test_an_odometry_that_is_not_a_topic_is_one_line(results, tmp_path, capsys):
+    folders = [str(results[0][0]), str(results[1][0])]
+    assert main([*folders, "--odometry", "poses.tum", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "--odometry poses.tum: not a topic name" in err and err.count("\n") == 1
