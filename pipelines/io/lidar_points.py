@@ -16,12 +16,23 @@ def time_field(names: Iterable[str]) -> str | None:
     return next((name for name in TIME_FIELDS if name in names), None)
 
 
-def returns(points: np.ndarray) -> np.ndarray | None:
-    """Mask of the (N, 3) points that are returns: finite, and not exactly at the origin (the no-return points of
-    Ouster drivers); None when every point is one."""
+def returns(points: np.ndarray, livox_tags: np.ndarray | None = None) -> np.ndarray | None:
+    """Mask of the (N, 3) points that are returns: finite, not exactly at the origin (the no-return points of
+    Ouster drivers), and, given Livox tags (N,), not tagged as noise (`livox_noise`); None when every point is one."""
     squared_range = np.einsum("ij,ij->i", points, points)  # NaN or inf unless x, y and z are all finite
     valid = (squared_range > 0.0) & (squared_range < np.inf)
+    if livox_tags is not None:
+        valid &= ~livox_noise(livox_tags)
     return None if valid.all() else valid
+
+
+def livox_noise(tags: np.ndarray) -> np.ndarray:
+    """Mask of the points a Livox sensor tags (uint8, one a point) as noise with high confidence: the point property
+    from the spatial position (bits 0-1) or from the intensity (bits 2-3) is 01 (dust, rain, fog), or the Mid-70's
+    nearby-waveform distortion (bits 6-7) is 01. Moderate and low confidence (10, 11) and the return number (bits
+    4-5) keep the point."""
+    tags = np.asarray(tags).astype(np.uint8, copy=False)
+    return ((tags & 0x03) == 0x01) | ((tags & 0x0C) == 0x04) | ((tags & 0xC0) == 0x40)
 
 
 def relative_seconds(values: np.ndarray, stamp: float) -> np.ndarray:

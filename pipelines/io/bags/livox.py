@@ -40,9 +40,9 @@ uint8 lidar_id
 uint8[3] rsvd
 CustomPoint[] points
 """
-_POINT_NAMES = ["offset_time", "x", "y", "z"]
-_POINT_FORMATS = ["u4", "f4", "f4", "f4"]
-_POINT_OFFSETS = [0, 4, 8, 12]
+_POINT_NAMES = ["offset_time", "x", "y", "z", "tag"]
+_POINT_FORMATS = ["u4", "f4", "f4", "f4", "u1"]
+_POINT_OFFSETS = [0, 4, 8, 12, 17]
 _POINT_SIZE = 19  # offset_time, x, y, z, reflectivity, tag, line
 
 
@@ -62,7 +62,8 @@ def custom_msg_arrays(raw: bytes | memoryview, cdr: bool) -> tuple[int, np.ndarr
     """(header.stamp [ns], points (N, 3) float64 [m], times (N,) float64 [s] relative to header.stamp, or empty)
     of one serialized CustomMsg: ROS1 serialisation (`cdr` False) or ROS2 CDR of either byte order.
 
-    Points that are not finite or exactly at the origin (no return) are dropped with their times. Times are empty
+    Points that are not finite, exactly at the origin (no return) or tagged as noise by the sensor
+    (`lidar_points.livox_noise`) are dropped with their times. Times are empty
     when every point has the same offset_time (a driver that does not fill it).
 
     Raises:
@@ -89,7 +90,7 @@ def custom_msg_arrays(raw: bytes | memoryview, cdr: bool) -> tuple[int, np.ndarr
     cloud = np.ndarray((count,), dtype=dtype, buffer=data, offset=start, strides=(stride,))
     points = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1).astype(np.float64)
     offsets = cloud["offset_time"]
-    keep = returns(points)
+    keep = returns(points, cloud["tag"])
     if keep is not None:
         points, offsets = points[keep], offsets[keep]
     times = relative_seconds(offsets, 0.0)  # uint32 ns after timebase; none when all the same
@@ -127,11 +128,13 @@ def encode_custom_msg(
     points: np.ndarray,
     times: np.ndarray,
     frame_id: str = "livox_frame",
+    tags: np.ndarray | None = None,
 ) -> Any:
     """A CustomMsg of `typestore` (registered with `register_custom_msg`) holding points (N, 3) [m] and times (N,)
-    [s] after `stamp` (empty: every offset_time 0); timebase and header.stamp are both `stamp`, as Livox's
-    drivers set them."""
+    [s] after `stamp` (empty: every offset_time 0), and `tags` (N,) (None: every tag 0); timebase and header.stamp
+    are both `stamp`, as Livox's drivers set them."""
     offsets = nanoseconds_after_stamp(times, len(points))
+    tags = np.zeros(len(points), dtype=np.uint8) if tags is None else np.asarray(tags, dtype=np.uint8)
     types = typestore.types
     point = types[f"{msgtype.split('/')[0]}/msg/CustomPoint"]
     cloud = np.asarray(points, dtype=np.float32)
@@ -142,7 +145,7 @@ def encode_custom_msg(
         lidar_id=0,
         rsvd=np.zeros(3, dtype=np.uint8),
         points=[
-            point(offset_time=int(t), x=float(x), y=float(y), z=float(z), reflectivity=0, tag=0, line=0)
-            for (x, y, z), t in zip(cloud, offsets, strict=True)
+            point(offset_time=int(t), x=float(x), y=float(y), z=float(z), reflectivity=0, tag=int(tag), line=0)
+            for (x, y, z), t, tag in zip(cloud, offsets, tags, strict=True)
         ],
     )

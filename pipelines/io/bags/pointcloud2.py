@@ -23,8 +23,10 @@ def pointcloud2_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
 
     Any layout: x, y, z of any numeric datatype, any point_step, padding and extra fields, row_step beyond
     width * point_step, organized clouds (height > 1), either byte order. Decoded through a strided numpy
-    view of `data`, without a loop over points. Points that are not finite (is_dense false) or exactly at
-    the origin (the no-return points of Ouster drivers) are dropped, with their times.
+    view of `data`, without a loop over points. Points that are not finite (is_dense false), exactly at the
+    origin (the no-return points of Ouster drivers) or tagged as noise by a Livox sensor (a uint8 `tag` field
+    beside a `line` field: livox_ros_driver(2)'s PointCloud2; `lidar_points.livox_noise`) are dropped, with their
+    times.
 
     Per-point time: the first field named t, time, timestamp, time_offset or offset_time, of any datatype, read
     by the rules of `lidar_points.relative_seconds` (unit and reference from the values themselves).
@@ -37,7 +39,8 @@ def pointcloud2_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     if missing:
         raise PointCloud2Error(f"PointCloud2 without {'/'.join(missing)} field (fields: {', '.join(fields) or 'none'})")
     time_name = time_field(fields)
-    names = ["x", "y", "z"] + ([time_name] if time_name else [])
+    livox = "tag" in fields and "line" in fields and fields["tag"].datatype == 2  # uint8: livox_ros_driver(2)'s
+    names = ["x", "y", "z"] + ([time_name] if time_name else []) + (["tag"] if livox else [])
     order = ">" if msg.is_bigendian else "<"
     formats = []
     for name in names:
@@ -66,7 +69,7 @@ def pointcloud2_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     for k, axis in enumerate("xyz"):
         points[..., k] = cloud[axis]
     points = points.reshape(-1, 3)
-    keep = returns(points)
+    keep = returns(points, cloud["tag"].reshape(-1) if livox else None)
     if keep is not None:
         points = points[keep]
     if time_name is None:

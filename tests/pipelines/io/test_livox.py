@@ -13,6 +13,7 @@ from pipelines.io.bags.livox import (
     encode_custom_msg,
     register_custom_msg,
 )
+from pipelines.io.bags.pointcloud2 import encode_pointcloud2, pointcloud2_arrays
 from pipelines.simulation import simulate_sequence
 
 STAMP = 1_700_000_123.25  # [s], exactly representable in ns
@@ -75,6 +76,39 @@ def test_empty_message_constant_times_and_truncation():
         custom_msg_arrays(raw[:20], cdr=False)
     with pytest.raises(ValueError, match="one per point"):
         encode_custom_msg(store, msgtype, STAMP, p, np.zeros(3))
+
+
+# Livox tags: bits 0-1 noise by spatial position, 2-3 by intensity, 4-5 return number, 6-7 (Mid-70) waveform
+# distortion; 01 in a noise group is high confidence.
+TAGS = np.array([0x00, 0x01, 0x02, 0x03, 0x04, 0x08, 0x10, 0x20, 0x40, 0x11, 0x12])
+NOISE = np.array([False, True, False, False, True, False, False, False, True, True, False])
+
+
+@pytest.mark.parametrize("ros1", [True, False])
+def test_points_tagged_as_noise_are_dropped_from_custom_msgs(ros1):
+    msgtype = CUSTOM_MSG_TYPES[1]
+    points, times = points_and_times(len(TAGS))
+    msg = encode_custom_msg(typestore(ros1, msgtype), msgtype, STAMP, points, times, tags=TAGS)
+    _, decoded, decoded_times = custom_msg_arrays(serialized(ros1, msgtype, msg), cdr=not ros1)
+    np.testing.assert_array_equal(decoded, points[~NOISE])
+    np.testing.assert_allclose(decoded_times, times[~NOISE], atol=1e-9)
+
+
+def test_points_tagged_as_noise_are_dropped_from_livox_pointclouds():
+    # livox_ros_driver2's PointCloud2: x y z intensity (float32), tag line (uint8), timestamp (float64, ns).
+    points, times = points_and_times(len(TAGS))
+    layout = [("x", "f4"), ("y", "f4"), ("z", "f4"), ("intensity", "f4"), ("tag", "u1"), ("line", "u1"),
+              ("timestamp", "f8")]  # fmt: skip
+    cloud = np.zeros(len(TAGS), dtype=layout)
+    for k, axis in enumerate("xyz"):
+        cloud[axis] = points[:, k]
+    cloud["tag"], cloud["timestamp"] = TAGS, (STAMP + times) * 1e9
+    msg = encode_pointcloud2(get_typestore(Stores.LATEST), STAMP, cloud)
+    decoded, decoded_times = pointcloud2_arrays(msg)
+    np.testing.assert_array_equal(decoded, points[~NOISE])
+    np.testing.assert_allclose(decoded_times, times[~NOISE], atol=1e-6)
+    unnamed = encode_pointcloud2(get_typestore(Stores.LATEST), STAMP, cloud[["x", "y", "z", "tag"]])
+    assert len(pointcloud2_arrays(unnamed)[0]) == len(TAGS)  # a tag without Livox's line field: not Livox's
 
 
 @pytest.mark.parametrize("fmt", FORMATS)
