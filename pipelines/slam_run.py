@@ -57,7 +57,7 @@ def run_input(
             listing = ", ".join(f"{name} ({kind.replace('/msg/', '/')})" for name, kind in source.pose_topics.items())
             notes.append(
                 f"the bag also holds poses: {listing}; --odometry TOPIC takes them instead of KISS-ICP's (the scans "
-                "deskewed, in the frame of those poses), --gt TOPIC compares with them"
+                "in the frame of those poses), --gt TOPIC compares with them"
             )
         for note in notes:
             print(f"sandro-slam: {note}", file=sys.stderr, flush=True)

@@ -39,7 +39,9 @@ class Frontend:
         self.config = config
         self.closer = closer
         self.odometry = (
-            KissIcpOdometry(config) if given is None else GivenOdometry(given, config.keyframes.submap_voxel)
+            KissIcpOdometry(config)
+            if given is None
+            else GivenOdometry(given, config.keyframes.submap_voxel, config.odometry.data.deskew)
         )
         self.builder = KeyframeBuilder(config.keyframes)
         self.timestamps: list[float] = []

@@ -28,6 +28,7 @@ REDESKEW_DEG = 0.5  # deskew and register a scan again when its rotation differs
 PERIOD_SCANS = 10  # the sweep period is the median stamp step over this many scans before
 MAX_BRIDGED_SWEEPS = 10  # a longer step between stamps is taken for a jump of the clock (a driver's switch to
 # PTP time) or a pause of the recording, not for lost sweeps: the scan is predicted one sweep ahead
+DESKEW_STEP = 1e-4  # [s] per-point times are rounded to this when deskewed along given poses
 
 
 class GaussianMapRefiner:
@@ -280,8 +281,9 @@ class KissIcpOdometry:
 @dataclass(frozen=True)
 class GivenPoses:
     """Odometry from another front end (FAST-LIO2, LIO-SAM, a wheel-inertial filter): T_world_sensor (N, 4, 4)
-    of the scans in order (`times` None), or at `times` (N,) [s], interpolated at each scan's stamp. Its scans are
-    taken as deskewed already: each scan's points in the sensor frame at its pose."""
+    of the scans in order (`times` None), or at `times` (N,) [s], interpolated at each scan's stamp. Scans without
+    per-point times, or with poses in order, are taken as deskewed already: each scan's points in the sensor frame
+    at its pose. Timed poses deskew scans that carry per-point times (`deskew`)."""
 
     poses: np.ndarray
     times: np.ndarray | None = None
@@ -316,14 +318,35 @@ class GivenPoses:
         _, pose = interpolate_poses(self.times[around], self.poses[around], np.array([stamp]), max_gap=np.inf)
         return pose[0]
 
+    def deskew(self, scan: Scan, T_world_scan: np.ndarray) -> np.ndarray:
+        """The points (N, 3) of a scan with per-point times, each moved from the sensor frame at its own time
+        (stamp + its time) into the sensor frame at `T_world_scan`, the pose at the scan's stamp, along the timed
+        poses (interpolated; held at the first or last pose outside their span; times rounded to DESKEW_STEP).
+
+        Raises:
+            ValueError: poses in order, without times.
+        """
+        if self.times is None:
+            raise ValueError("poses in order have no times to deskew with")
+        steps, inverse = np.unique(np.round(scan.times / DESKEW_STEP).astype(np.int64), return_inverse=True)
+        at = np.clip(scan.timestamp + steps * DESKEW_STEP, self.times[0], self.times[-1])
+        first = max(0, min(int(np.searchsorted(self.times, at[0])) - 1, len(self.times) - 2))
+        last = max(first + 2, int(np.searchsorted(self.times, at[-1])) + 1)
+        _, poses = interpolate_poses(self.times[first:last], self.poses[first:last], at, max_gap=np.inf)
+        relative = np.linalg.inv(T_world_scan) @ poses  # T_scan_point per time step
+        rotations, translations = relative[inverse.ravel(), :3, :3], relative[inverse.ravel(), :3, 3]
+        return np.einsum("nij,nj->ni", rotations, scan.points) + translations
+
 
 class GivenOdometry:
     """`GivenPoses` as the front end's odometry. Scans without a pose are not used; `unmatched` lists their indices
-    (in the order they were added). Poses in order are one per scan seen, skipped ones included."""
+    (in the order they were added). Poses in order are one per scan seen, skipped ones included. With `deskew`,
+    timed poses deskew the scans that carry per-point times (`GivenPoses.deskew`)."""
 
-    def __init__(self, given: GivenPoses, submap_voxel: float):
+    def __init__(self, given: GivenPoses, submap_voxel: float, deskew: bool = True):
         self.given = given
         self.submap_voxel = submap_voxel
+        self.deskews = deskew and given.times is not None
         self.unmatched: list[int] = []
         self._seen = 0  # scans added or skipped
         self._added = 0
@@ -335,7 +358,8 @@ class GivenOdometry:
         if pose is None:
             self.unmatched.append(self._added - 1)
             return []
-        return [(scan.timestamp, pose, voxel_downsample(scan.points, self.submap_voxel))]
+        points = self.given.deskew(scan, pose) if self.deskews and len(scan.times) else scan.points
+        return [(scan.timestamp, pose, voxel_downsample(points, self.submap_voxel))]
 
     def skip(self, stamp: float) -> None:
         """A scan that is not added (`Frontend.skip`): the next one's pose in order is the one after its."""

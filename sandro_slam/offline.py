@@ -70,8 +70,8 @@ class OfflineSlam:
         than a tenth of the frames before), or repeating the frame before (its stamp and points: a message
         recorded twice) are skipped (`skipped_frames`); other non-finite points are dropped.
 
-        `odometry`: the poses of another front end instead of KISS-ICP (its scans deskewed already); frames it has
-        no pose for are skipped too.
+        `odometry`: the poses of another front end instead of KISS-ICP (scans with per-point times deskewed along
+        timed poses, `GivenPoses.deskew`; others taken as deskewed); frames it has no pose for are skipped too.
 
         With `loops.in_background` and more than one core, `module` works in a worker process beside the
         odometry (`BackgroundLoopClosure`) and is replaced by what the worker returns, with the same content.

@@ -4,6 +4,8 @@ The drive's scans deskewed with the true motion (what a LiDAR-inertial front end
 poses drifting by a share of the distance travelled in a slowly turning direction (`simulation.drift.drifted`).
 Per drift: the ATE of the odometry and of sandro-slam on top of it, and the revisit gap of both (`revisit_errors`:
 where the drive returns, the error of a pose relative to the earlier pose nearby, median and 95th percentile).
+Then sandro-slam on the raw sweeps (with their per-point times) and the same poses, timed at the sweeps' ends,
+which deskew the sweeps (`GivenPoses.deskew`): the ATE at the sweeps' starts.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ def given_odometry_experiment(
     deskewed = [sequence.deskew(frame) for frame in frames]
     scans = [scan for scan, _ in deskewed]
     truth = np.array([T for _, T in deskewed])
+    ends = np.array([scan.timestamp for scan in scans])  # [s] of the sweeps' ends, where `truth` is
     metrics: dict[str, float] = {}
     for drift in drifts:
         name = f"given_{100 * drift:g}pct"
@@ -42,4 +45,8 @@ def given_odometry_experiment(
         metrics[f"{name}_odometry_noise_scale"] = result.odometry_noise_scale
         metrics[f"{name}_loops_verified"] = len(result.loops)
         metrics[f"{name}_loops_rejected"] = len(result.rejected_loops)
+        print("sandro-slam on the raw sweeps, deskewed along that odometry ...", flush=True)
+        raw = OfflineSlam(config).run(frames, odometry=GivenPoses(odometry, ends), progress=True)
+        metrics[f"{name}_raw_ate_sandro_slam"] = ate(raw.poses, sequence.poses_at(raw.timestamps))
+        metrics[f"{name}_raw_loops_rejected"] = len(raw.rejected_loops)
     return metrics

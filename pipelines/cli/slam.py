@@ -52,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--rate", type=float, help="scans per second [Hz] of a scan folder without other times")
     parser.add_argument("--odometry", metavar="POSES", help="poses of your own front end instead of "
                         "KISS-ICP: TUM (by time), KITTI (one per scan) or a bag's topic of poses (nav_msgs/Odometry, "
-                        "...); the scans deskewed already")  # fmt: skip
+                        "...); scans with per-point times deskewed along timed poses")  # fmt: skip
     parser.add_argument("--config", type=Path, help="SlamConfig YAML (default: configs/default.yaml's values)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"base results folder (default {DEFAULT_OUT})")
     parser.add_argument("--gt", help="ground truth: TUM (matched by time), KITTI (one pose per scan) or a bag's "

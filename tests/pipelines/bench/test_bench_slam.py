@@ -19,6 +19,7 @@ def test_short_run_writes_its_outputs(tmp_path):
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["frames"] == 25 and metrics["ate_sandro_slam"] < 0.5
     assert metrics["given_0.5pct_ate_odometry"] > 0.0 and metrics["given_0.05pct_ate_sandro_slam"] < 0.5
+    assert metrics["given_0.5pct_raw_ate_sandro_slam"] < 0.5
     lost, cut, repeated = (metrics[f"damaged_frames_{what}"] for what in ("lost", "cut", "repeated"))
     assert (lost, cut, repeated) == (2, 1, 1) and metrics["damaged_frames_skipped"] == cut + repeated
     assert metrics["damaged_ate_sandro_slam"] < 0.5
