@@ -23,7 +23,7 @@ from pathlib import Path
 from pipelines.cli.entry import one_line
 from pipelines.cluster import ray_session, threads_limited
 from pipelines.io.atomic import write_text_atomic
-from pipelines.io.bags.poses import is_topic_name
+from pipelines.io.inputs import names_bag_poses
 from sandro_slam import SlamConfig
 
 SUMMARY_FIELDS = [
@@ -60,7 +60,7 @@ def jobs_for(inputs: list[Path], out: Path, gt: str | None = None, odometry: str
     for option, value in (("--gt", gt), ("--odometry", odometry)):
         if value is None or len(inputs) == 1 or "{name}" in value:
             continue
-        if Path(value).is_file() or not is_topic_name(value):
+        if Path(value).is_file() or not names_bag_poses(value):
             raise ValueError(
                 f"{option} {value}: with several inputs, a pattern with {{name}} (e.g. gt/{{name}}.tum) or a topic"
             )
@@ -91,8 +91,8 @@ def run_job(job: Job, ctrl_c: bool = False) -> dict:
         with _threads_limited(job.config, job.threads) as config:
             folder, metrics = run_input(
                 job.input, job.out, config, fmt=job.fmt, topic=job.topic, rate=job.rate,
-                ground_truth=read_poses(job.gt, job.input, job.fmt) if job.gt is not None else None,
-                odometry=read_poses(job.odometry, job.input, job.fmt) if job.odometry is not None else None,
+                ground_truth=read_poses(job.gt, job.input, job.fmt, job.topic) if job.gt is not None else None,
+                odometry=read_poses(job.odometry, job.input, job.fmt, job.topic) if job.odometry is not None else None,
                 max_frames=job.max_frames, map_voxel=job.map_voxel, ctrl_c=ctrl_c,
             )  # fmt: skip
     except Exception as error:  # noqa: BLE001 - a corrupt input may fail anywhere; the batch goes on

@@ -60,12 +60,10 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     if len(args.sessions) < 2:
         raise CommandError("at least two sessions are needed")
-    from pipelines.io.bags.poses import is_topic_name
+    from pipelines.io.inputs import names_bag_poses
 
-    if args.odometry is not None and not is_topic_name(args.odometry):
-        raise CommandError(
-            f"--odometry {args.odometry}: not a topic name (a topic of poses of the bags, e.g. /Odometry)"
-        )
+    if args.odometry is not None and not names_bag_poses(args.odometry):
+        raise CommandError(f"--odometry {args.odometry}: not a topic name nor tf:FRAME (poses of the bags)")
     if args.workers < 1 or args.threads_per_task < 0:
         raise CommandError("--workers must be at least 1 and --threads-per-task at least 0")
     parallel = args.workers > 1 or args.ray is not None
@@ -131,7 +129,8 @@ def _load_session(
 
         print(f"sandro-merge: processing {path} ...", flush=True)
         try:
-            poses = read_poses(odometry, path) if odometry is not None and detect_format(path) == "bag" else None
+            from_bag = odometry is not None and detect_format(path) == "bag"
+            poses = read_poses(odometry, path, topic=topic) if from_bag else None
             folder, _ = run_input(path, bag_out, config, topic=topic, odometry=poses)
         except Exception as error:  # the bag reader's own errors: one line, like the other bad inputs
             raise ValueError(f"{path}: {one_line(error)}") from None

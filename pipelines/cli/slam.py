@@ -99,8 +99,8 @@ def _run(args: argparse.Namespace) -> int:
     from pipelines.io.inputs import read_poses
     from pipelines.slam_run import run_input
 
-    ground_truth = read_poses(args.gt, args.input[0], args.format) if args.gt is not None else None
-    odometry = read_poses(args.odometry, args.input[0], args.format) if args.odometry is not None else None
+    ground_truth = read_poses(args.gt, args.input[0], args.format, args.topic) if args.gt is not None else None
+    odometry = read_poses(args.odometry, args.input[0], args.format, args.topic) if args.odometry is not None else None
     folder, metrics = run_input(
         args.input[0],
         args.out,

@@ -8,13 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.io.bags import POSE_TYPES, BagScans, is_topic_name, pose_topics, read_pose_topic
+from pipelines.io.bags import POSE_TYPES, BagScans, is_topic_name, pose_topics, read_pose_topic, read_tf_poses
 from pipelines.io.scan_folder import ScanFolder
 from pipelines.io.trajectory import read_trajectory
 
 FORMATS = ("bag", "folder", "kitti", "keyframes")
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
 DUMP_POSES = ("poses.txt", "poses.tum", "poses.kitti")  # the front end's poses beside a keyframe dump's scans
+TF_PREFIX = "tf:"  # `read_poses`: tf:FRAME, the scans' frame in FRAME from a bag's transforms
 
 Poses = tuple[np.ndarray | None, np.ndarray]  # (times [s] or None: one pose per scan in order, (N, 4, 4) poses)
 
@@ -98,16 +99,26 @@ def open_input(path: str | Path, fmt: str | None = None, topic: str | None = Non
     return result
 
 
-def read_poses(value: str, path: str | Path, fmt: str | None = None) -> Poses:
-    """The poses that `value` names for the input at `path` (format `fmt`, None: `detect_format`): a trajectory file
-    (`read_trajectory`) or, for a bag, one of its topics of poses (`read_pose_topic`: a front end's
-    nav_msgs/Odometry, a ground truth's geometry_msgs poses).
+def names_bag_poses(value: str) -> bool:
+    """Whether `value` can name poses inside a bag for `read_poses`: a topic name, or tf:FRAME."""
+    return is_topic_name(value) or (value.startswith(TF_PREFIX) and is_topic_name(value[len(TF_PREFIX) :]))
+
+
+def read_poses(value: str, path: str | Path, fmt: str | None = None, topic: str | None = None) -> Poses:
+    """The poses that `value` names for the input at `path` (format `fmt`, None: `detect_format`; `topic` its point
+    cloud topic, if a bag has several): a trajectory file (`read_trajectory`) or, for a bag, one of its topics of
+    poses (`read_pose_topic`: a front end's nav_msgs/Odometry, a ground truth's geometry_msgs poses), or `tf:FRAME`:
+    the pose of the scans' frame (their header.frame_id) in FRAME from the bag's transforms (`read_tf_poses`).
 
     Raises:
-        ValueError (BagError for bags): `value` is neither, or cannot be read.
+        ValueError (BagError for bags): `value` is none of them, or cannot be read.
     """
     path = Path(path)
-    if Path(value).is_file() or not is_topic_name(value) or (fmt or detect_format(path)) != "bag":
+    is_bag = not Path(value).is_file() and (fmt or detect_format(path)) == "bag"
+    if is_bag and value.startswith(TF_PREFIX):
+        with BagScans(path, topic) as scans:
+            return read_tf_poses(path, value[len(TF_PREFIX) :], scans.frame_id())
+    if not is_bag or not is_topic_name(value):
         return read_trajectory(Path(value))
     topics = pose_topics(path)
     if value not in topics:

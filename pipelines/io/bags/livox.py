@@ -97,6 +97,15 @@ def custom_msg_arrays(raw: bytes | memoryview, cdr: bool) -> tuple[int, np.ndarr
     return stamp_ns, points, times + (timebase - stamp_ns) * 1e-9 if len(times) else times
 
 
+def custom_msg_frame_id(raw: bytes | memoryview, cdr: bool) -> str:
+    """header.frame_id of one serialized CustomMsg (ROS1, or CDR of either byte order)."""
+    data = memoryview(raw).cast("B")
+    order = ">" if cdr and data[1] != 1 else "<"
+    (length,) = struct.unpack_from(order + "I", data, 12)  # after seq, sec, nsec (ROS1) or the CDR header, sec, nsec
+    text = bytes(data[16 : 16 + length])
+    return text.rstrip(b"\0").decode("utf-8", errors="replace")
+
+
 def _ros1_layout(data: memoryview) -> tuple[int, int, int, int, str, int]:
     """(stamp ns, timebase ns, point count, offset of the first point, byte order, point stride) of ROS1 bytes:
     header (seq, sec, nsec, frame_id), timebase, point_num, lidar_id, rsvd[3], then the points' length and the

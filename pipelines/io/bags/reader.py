@@ -19,7 +19,7 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from pipelines.io.bags.livox import CUSTOM_MSG_TYPES, CustomMsgError, custom_msg_arrays
+from pipelines.io.bags.livox import CUSTOM_MSG_TYPES, CustomMsgError, custom_msg_arrays, custom_msg_frame_id
 from pipelines.io.bags.pointcloud2 import POINTCLOUD2, PointCloud2Error, pointcloud2_arrays
 from sandro_slam.scan import Scan
 
@@ -175,6 +175,22 @@ class BagScans:
             if item is None:
                 return
             yield item
+
+    def frame_id(self) -> str:
+        """header.frame_id of the topic's first message: the frame its points are in; BagError on a bag that cannot
+        be read or a message that cannot be deserialized."""
+        messages = self._raw_messages()
+        first = next(messages, None)
+        messages.close()
+        if first is None:
+            raise BagError(f"{self.path}: {self.topic} holds no message")
+        connection, _, raw = first
+        if self._custom_msg:
+            return custom_msg_frame_id(raw, cdr=self._open().is2)
+        try:
+            return str(self._open().deserialize(raw, connection.msgtype).header.frame_id)
+        except Exception as error:
+            raise BagError(f"{self.path}: {self.topic} message 0: cannot deserialize ({one_line(error)})") from None
 
     def _decode(self, connection: Any, raw: bytes, index: int | str) -> tuple[int, np.ndarray, np.ndarray]:
         """(header.stamp [ns], points, times) of one serialized message; BagError naming it if it cannot be."""

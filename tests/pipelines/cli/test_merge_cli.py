@@ -61,4 +61,4 @@ def test_an_odometry_that_is_not_a_topic_is_one_line(results, tmp_path, capsys):
     folders = [str(results[0][0]), str(results[1][0])]
     assert main([*folders, "--odometry", "poses.tum", "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
-    assert "--odometry poses.tum: not a topic name" in err and err.count("\n") == 1
+    assert "--odometry poses.tum: not a topic name nor tf:FRAME" in err and err.count("\n") == 1

@@ -10,6 +10,7 @@ from pipelines.io.bags.livox import (
     CUSTOM_MSG_TYPES,
     CustomMsgError,
     custom_msg_arrays,
+    custom_msg_frame_id,
     encode_custom_msg,
     register_custom_msg,
 )
@@ -49,6 +50,7 @@ def test_decoding_matches_rosbags_for_every_frame_id_alignment(msgtype, ros1, li
         msg.timebase += 2_000_000  # a timebase after the stamp shifts every time
         raw = serialized(ros1, msgtype, msg, little_endian)
         stamp_ns, decoded, decoded_times = custom_msg_arrays(raw, cdr=not ros1)
+        assert custom_msg_frame_id(raw, cdr=not ros1) == frame_id
 
         reference = store.deserialize_ros1(raw, msgtype) if ros1 else store.deserialize_cdr(raw, msgtype)
         expected = np.array([(p.x, p.y, p.z) for p in reference.points], dtype=np.float32).astype(np.float64)
@@ -116,10 +118,10 @@ def test_bag_round_trip(tmp_path, fmt):
     sequence = simulate_sequence(seed=1, frames=2)
     frames = [(STAMP + f.timestamp, f.points, f.times) for f in sequence.frames()]
     path = tmp_path / ("scans.bag" if fmt == "ros1" else f"scans_{fmt}")
-    assert write_bag(path, fmt, frames, topic="/livox/lidar", message="livox") == 2
+    assert write_bag(path, fmt, frames, topic="/livox/lidar", message="livox", frame_id="livox_frame") == 2
     assert pointcloud_topics(path) == {"/livox/lidar": 2}
     with BagScans(path) as bag:
-        assert bag.duration == pytest.approx(0.1, abs=1e-6)
+        assert bag.duration == pytest.approx(0.1, abs=1e-6) and bag.frame_id() == "livox_frame"
         read = list(bag)
     for (stamp, points, times), (stamp0, points0, times0) in zip(read, frames, strict=True):
         assert stamp == pytest.approx(stamp0, abs=1e-6)
