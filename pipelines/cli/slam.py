@@ -99,8 +99,13 @@ def _run(args: argparse.Namespace) -> int:
     from pipelines.io.inputs import read_poses
     from pipelines.slam_run import run_input
 
-    ground_truth = read_poses(args.gt, args.input[0], args.format, args.topic) if args.gt is not None else None
-    odometry = read_poses(args.odometry, args.input[0], args.format, args.topic) if args.odometry is not None else None
+    notes: list[str] = []
+    ground_truth, odometry = (
+        read_poses(value, args.input[0], args.format, args.topic, notes) if value is not None else None
+        for value in (args.gt, args.odometry)
+    )
+    for note in notes:
+        print(f"sandro-slam: {note}", file=sys.stderr, flush=True)
     folder, metrics = run_input(
         args.input[0],
         args.out,

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from pipelines.io.bags import POSE_TYPES, BagScans, is_topic_name, pose_topics, read_pose_topic, read_tf_poses
+from pipelines.io.bags.poses import pose_topic_child_frame
+from pipelines.io.bags.tf import TransformTree, frame_name
 from pipelines.io.scan_folder import ScanFolder
 from pipelines.io.trajectory import read_trajectory
 
@@ -104,11 +106,17 @@ def names_bag_poses(value: str) -> bool:
     return is_topic_name(value) or (value.startswith(TF_PREFIX) and is_topic_name(value[len(TF_PREFIX) :]))
 
 
-def read_poses(value: str, path: str | Path, fmt: str | None = None, topic: str | None = None) -> Poses:
+def read_poses(
+    value: str, path: str | Path, fmt: str | None = None, topic: str | None = None, notes: list[str] | None = None
+) -> Poses:
     """The poses that `value` names for the input at `path` (format `fmt`, None: `detect_format`; `topic` its point
     cloud topic, if a bag has several): a trajectory file (`read_trajectory`) or, for a bag, one of its topics of
     poses (`read_pose_topic`: a front end's nav_msgs/Odometry, a ground truth's geometry_msgs poses), or `tf:FRAME`:
     the pose of the scans' frame (their header.frame_id) in FRAME from the bag's transforms (`read_tf_poses`).
+
+    A topic whose messages name their frame (nav_msgs/Odometry's child_frame_id: base_link, say) other than the
+    scans' (lidar) is moved to the scans' frame by the bag's constant transforms between the two (/tf_static), or
+    taken as the scans' frame where there are none; what was done goes into `notes`, for the user.
 
     Raises:
         ValueError (BagError for bags): `value` is none of them, or cannot be read.
@@ -125,4 +133,17 @@ def read_poses(value: str, path: str | Path, fmt: str | None = None, topic: str 
         listing = ", ".join(f"{name} ({kind.replace('/msg/', '/')})" for name, kind in topics.items()) or "none"
         raise ValueError(f"{value}: neither a trajectory file nor a topic of poses in {path} (its topics of poses: "
                          f"{listing})")  # fmt: skip
-    return read_pose_topic(path, value)
+    times, poses = read_pose_topic(path, value)
+    child = pose_topic_child_frame(path, value)
+    with BagScans(path, topic) as scans:
+        scans_frame = frame_name(scans.frame_id())
+    if child is None or not scans_frame or frame_name(child) == scans_frame:
+        return times, poses
+    extrinsic = TransformTree(path).static(child, scans_frame)
+    if notes is not None and extrinsic is not None:
+        notes.append(f"{value}: poses of {frame_name(child)} moved into the scans' frame {scans_frame} by the bag's "
+                     "constant transforms")  # fmt: skip
+    elif notes is not None:
+        notes.append(f"{value}: poses of {frame_name(child)}, scans in {scans_frame}, and no constant transform "
+                     "between them in the bag: taken as one frame")  # fmt: skip
+    return times, poses if extrinsic is None else poses @ extrinsic

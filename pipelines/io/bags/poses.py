@@ -49,6 +49,23 @@ def topics_of_poses(reader: Any) -> dict[str, str]:
     return {name: info.msgtype for name, info in reader.topics.items() if info.msgtype in POSE_TYPES and info.msgcount}
 
 
+def pose_topic_child_frame(path: str | Path, topic: str) -> str | None:
+    """The frame whose pose a topic of poses holds, where its messages name it: the child_frame_id of the first
+    nav_msgs/Odometry or TransformStamped message; None for the other types, or a topic without messages."""
+    reader = open_reader(Path(path))
+    try:
+        connections = [c for c in reader.connections if c.topic == topic]
+        if not connections or connections[0].msgtype not in (ODOMETRY, "geometry_msgs/msg/TransformStamped"):
+            return None
+        for connection, _, raw in reader.messages(connections):
+            return str(reader.deserialize(raw, connection.msgtype).child_frame_id) or None
+        return None
+    except Exception as error:  # corrupt or truncated data: rosbags raises many types
+        raise BagError(f"{path}: {topic}: corrupt or truncated bag ({one_line(error)})") from None
+    finally:
+        reader.close()
+
+
 def _pose_row(msg: Any, msgtype: str) -> list[float]:
     """x y z qx qy qz qw of one message."""
     if msgtype == "geometry_msgs/msg/TransformStamped":

@@ -36,6 +36,24 @@ def _transform(store, stamp: float, parent: str, child: str, pose: np.ndarray):
     )
 
 
+def _odometry(store, stamp: float, child: str, pose: np.ndarray):
+    types = store.types
+    transform = _transform(store, stamp, "odom", child, pose).transform
+    geometry = types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](x=pose[0, 3], y=pose[1, 3], z=pose[2, 3]),
+        orientation=transform.rotation,
+    )
+    zero = types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    return types["nav_msgs/msg/Odometry"](
+        header=ros_header(store, stamp, "odom"),
+        child_frame_id=child,
+        pose=types["geometry_msgs/msg/PoseWithCovariance"](pose=geometry, covariance=np.zeros(36)),
+        twist=types["geometry_msgs/msg/TwistWithCovariance"](
+            twist=types["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36)
+        ),
+    )
+
+
 ODOM_TIMES = START + 0.02 * np.arange(50)  # 50 Hz odometry over a second
 T_BASE_LIDAR = _pose(0.3, [0.4, -0.1, 1.2])
 
@@ -57,6 +75,11 @@ def bag(tmp_path_factory):
         statics = [_transform(store, START, "base_link", "lidar", T_BASE_LIDAR),
                    _transform(store, START, "base_link", "imu", _pose(0.0, [0.0, 0.0, 0.5]))]  # fmt: skip
         writer.write(tf_static, round(START * 1e9), store.serialize_cdr(store.types[TF](transforms=statics), TF))
+        for name, child in (("/odom", "base_link"), ("/wheel_odom", "wheel")):  # nav_msgs/Odometry of base_link
+            connection = writer.add_connection(name, "nav_msgs/msg/Odometry", typestore=store)
+            for t, pose in zip(ODOM_TIMES, _odom_base(ODOM_TIMES)):
+                writer.write(connection, round(t * 1e9), store.serialize_cdr(_odometry(store, t, child, pose),
+                                                                             "nav_msgs/msg/Odometry"))  # fmt: skip
         for t, pose in zip(ODOM_TIMES, _odom_base(ODOM_TIMES)):
             transforms = [_transform(store, t, "/odom", "base_link", pose),  # a ROS1-style leading slash
                           _transform(store, t, "map", "odom", _pose(0.0, [5.0, 0.0, 0.0]))]  # fmt: skip
@@ -86,3 +109,14 @@ def test_frames_without_a_moving_chain_are_refused_with_the_frames_named(bag):
     with pytest.raises(BagError, match="every transform from imu to lidar is static"):
         read_tf_poses(bag, "imu", "lidar")
     assert names_bag_poses("tf:odom") and names_bag_poses("/Odometry") and not names_bag_poses("tf:")
+
+
+def test_an_odometry_of_another_frame_is_moved_into_the_scans_frame(bag):
+    notes = []
+    _, poses = read_poses("/odom", bag, notes=notes)  # poses of base_link, scans in lidar
+    np.testing.assert_allclose(poses, _odom_base(ODOM_TIMES) @ T_BASE_LIDAR, atol=1e-9)
+    assert notes == ["/odom: poses of base_link moved into the scans' frame lidar by the bag's constant transforms"]
+    notes.clear()
+    _, poses = read_poses("/wheel_odom", bag, notes=notes)  # a frame the tree does not have: taken as the scans'
+    np.testing.assert_allclose(poses, _odom_base(ODOM_TIMES), atol=1e-9)
+    assert "poses of wheel, scans in lidar, and no constant transform between them" in notes[0]
