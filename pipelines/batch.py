@@ -42,7 +42,7 @@ class Job:
     fmt: str | None = None
     topic: str | None = None
     rate: float | None = None
-    gt: str | None = None  # a trajectory file, or a topic of poses of the input bag
+    gt: str | None = None  # a trajectory file, or poses in the input bag: a topic, tf:FRAME (`io.inputs.read_poses`)
     odometry: str | None = None
     max_frames: int | None = None
     map_voxel: float = 0.2
@@ -51,11 +51,11 @@ class Job:
 
 def jobs_for(inputs: list[Path], out: Path, gt: str | None = None, odometry: str | None = None, **common) -> list[Job]:
     """A Job per input, its results under OUT/<name>; `gt` and `odometry` are trajectory files or, for several
-    inputs, patterns where {name} stands for the input's name (the stem of a file, the name of a folder), or a topic
-    of poses every input bag holds (`io.inputs.read_poses`).
+    inputs, patterns where {name} stands for the input's name (the stem of a file, the name of a folder), or poses
+    every input bag holds: a topic, tf:FRAME (`io.inputs.read_poses`).
 
     Raises:
-        ValueError: several inputs and a `gt` or `odometry` that is neither a pattern nor a topic name.
+        ValueError: several inputs and a `gt` or `odometry` that is neither a pattern nor poses in a bag.
     """
     for option, value in (("--gt", gt), ("--odometry", odometry)):
         if value is None or len(inputs) == 1 or "{name}" in value:

@@ -154,8 +154,8 @@ class WorldFrameCheck:
         self.given = given
         self.world_frame = False
         self._count = 0
-        self._mean = np.zeros((2, 3))  # per reading: the running mean of the centre [m] and of its squared norm [m^2]
-        self._mean_square = np.zeros(2)
+        self._mean = np.zeros((2, 3))  # running mean of each reading of the centre [m]
+        self._mean_square = np.zeros(2)  # running mean of each reading's squared norm [m^2]
 
     def watch(self, frames: Iterable) -> Iterator:
         """The frames, unchanged; a warning on stderr the first time they look like world-frame scans."""
