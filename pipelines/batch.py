@@ -88,12 +88,17 @@ def run_job(job: Job, ctrl_c: bool = False) -> dict:
     from pipelines.slam_run import run_input
 
     try:
+        notes: list[str] = []
+        ground_truth, odometry = (
+            read_poses(value, job.input, job.fmt, job.topic, notes) if value is not None else None
+            for value in (job.gt, job.odometry)
+        )
+        for note in notes:
+            print(f"sandro-slam: {job.input}: {note}", file=sys.stderr, flush=True)
         with _threads_limited(job.config, job.threads) as config:
             folder, metrics = run_input(
-                job.input, job.out, config, fmt=job.fmt, topic=job.topic, rate=job.rate,
-                ground_truth=read_poses(job.gt, job.input, job.fmt, job.topic) if job.gt is not None else None,
-                odometry=read_poses(job.odometry, job.input, job.fmt, job.topic) if job.odometry is not None else None,
-                max_frames=job.max_frames, map_voxel=job.map_voxel, ctrl_c=ctrl_c,
+                job.input, job.out, config, fmt=job.fmt, topic=job.topic, rate=job.rate, ground_truth=ground_truth,
+                odometry=odometry, max_frames=job.max_frames, map_voxel=job.map_voxel, ctrl_c=ctrl_c,
             )  # fmt: skip
     except Exception as error:  # noqa: BLE001 - a corrupt input may fail anywhere; the batch goes on
         return {**_head(job, "failed"), "error": one_line(error)}
