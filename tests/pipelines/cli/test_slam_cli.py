@@ -114,6 +114,8 @@ def test_a_front_ends_bag_runs_on_its_odometry_topic(tmp_path, capsys):
     write_bag(world, "ros1", moved, odometry=(topic_times, topic))
     assert main([str(world), "--odometry", "/odometry", "--out", str(out), "--quiet"]) == 0
     assert "warning: the scans seem to be in the odometry's world frame" in capsys.readouterr().err
+    assert main([str(world), "--out", str(out), "--quiet"]) == 0  # KISS-ICP on them: it stands still
+    assert "warning: the scans seem to be in a fixed world frame" in capsys.readouterr().err
 
 
 def test_missing_and_corrupt_bags(tmp_path, capsys):

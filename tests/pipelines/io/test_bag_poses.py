@@ -12,9 +12,9 @@ from pipelines.io.bags import BagError, is_topic_name, pose_topics, read_pose_to
 from pipelines.io.bags.pointcloud2 import ros_header
 from pipelines.io.inputs import read_poses
 from pipelines.io.trajectory import write_tum
-from pipelines.slam_run import WorldFrameCheck
+from pipelines.slam_run import ScanFrameCheck, scan_centre
 from sandro_core.geometry import transform_points
-from sandro_slam import GivenPoses, Scan
+from sandro_slam import Scan
 
 START = 1_700_000_000.0
 
@@ -132,7 +132,7 @@ def test_an_option_names_a_trajectory_file_or_a_topic_of_the_bag(tmp_path):
     assert not is_topic_name("poses.tum") and not is_topic_name("/data/gt.txt") and not is_topic_name("")
 
 
-def test_scans_in_the_odometry_world_frame_are_noticed():
+def test_scans_in_a_world_frame_are_noticed():
     # A drive around a 40 m circle; each scan a cloud around the sensor, given in the sensor frame or moved into
     # the world frame by its pose (what picking FAST-LIO2's /cloud_registered gives).
     count = 80
@@ -140,13 +140,15 @@ def test_scans_in_the_odometry_world_frame_are_noticed():
     poses = np.tile(np.eye(4), (count, 1, 1))
     poses[:, :3, :3] = Rotation.from_euler("z", (angles + np.pi / 2)[:, None]).as_matrix()
     poses[:, :2, 3] = 40.0 * np.column_stack([np.cos(angles), np.sin(angles)])
-    times = START + 0.1 * np.arange(count)
-    given = GivenPoses(poses, times)
-    sensor, world = WorldFrameCheck(given), WorldFrameCheck(given)
+    checks = {name: ScanFrameCheck() for name in ("sensor", "world", "standing")}
     verdicts = []
-    for index, scan in enumerate(_scans(times)):
-        scan = Scan(scan.timestamp, scan.points + [20.0, 0.0, 0.0], scan.times)  # looking ahead, as a Livox does
-        moved = Scan(scan.timestamp, transform_points(poses[index], scan.points), scan.times)
-        verdicts.append((sensor.add(index, scan), world.add(index, moved)))
-    assert not any(s for s, _ in verdicts)
-    assert not any(w for _, w in verdicts[: WorldFrameCheck.MIN_SCANS - 1]) and verdicts[-1][1]
+    for pose, scan in zip(poses, _scans(START + 0.1 * np.arange(count))):
+        points = scan.points + [20.0, 0.0, 0.0]  # looking ahead, as a Livox does
+        world = transform_points(pose, points)
+        checks["sensor"].add(scan_centre(points), pose)
+        checks["world"].add(scan_centre(world), pose)  # a given odometry on world-frame scans
+        checks["standing"].add(scan_centre(world), np.eye(4))  # KISS-ICP on them: they line up where they are
+        verdicts.append({name: (check.world_frame, check.fixed_frame) for name, check in checks.items()})
+    assert verdicts[-1] == {"sensor": (False, False), "world": (True, False), "standing": (False, True)}
+    assert verdicts[ScanFrameCheck.MIN_SCANS - 2] == {name: (False, False) for name in checks}  # too few scans yet
+    assert not any(v["sensor"][0] or v["sensor"][1] for v in verdicts)
