@@ -12,7 +12,7 @@ from pipelines.io.bags import BagError, is_topic_name, pose_topics, read_pose_to
 from pipelines.io.bags.pointcloud2 import ros_header
 from pipelines.io.inputs import read_poses
 from pipelines.io.trajectory import write_tum
-from pipelines.slam_run import ScanFrameCheck, scan_centre
+from pipelines.scan_frame import ScanFrameCheck, scan_centre
 from sandro_core.geometry import transform_points
 from sandro_slam import Scan
 
