@@ -99,15 +99,18 @@ class OfflineSlam:
             skipped, added = [], []  # indices of the input frames
             kiss = config.odometry
             grid = (kiss.mapping.voxel_size, kiss.data.min_range, kiss.data.max_range)
-            sparse = SparseScans(
-                occupied_voxels(scan.points, *grid) for _, scan in head[:VOXEL_COUNT_SCANS] if len(scan.points)
-            )
+            head_counts = {  # of the first scans, read ahead: they seed SparseScans and are judged by it
+                index: occupied_voxels(scan.points, *grid)
+                for index, scan in head[:VOXEL_COUNT_SCANS]
+                if len(scan.points)
+            }
+            sparse = SparseScans(head_counts.values())
             previous = None
             for index, scan in itertools.chain(head, scans):
                 repeated, previous = _same_sweep(scan, previous), scan
                 if repeated:  # a message recorded twice: KISS-ICP would take it for a stop
                     skipped.append(index)
-                elif sparse(occupied_voxels(scan.points, *grid)):
+                elif sparse(head_counts.pop(index) if index in head_counts else occupied_voxels(scan.points, *grid)):
                     skipped.append(index)
                     frontend.skip(scan.timestamp)
                 else:

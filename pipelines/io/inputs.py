@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.io.bags import POSE_TYPES, BagScans, is_topic_name, pose_topics, read_pose_topic, read_tf_poses
-from pipelines.io.bags.poses import pose_topic_child_frame
+from pipelines.io.bags import POSE_TYPES, BagScans, is_topic_name, read_tf_poses
+from pipelines.io.bags.poses import NotAPoseTopic, read_pose_messages
 from pipelines.io.bags.tf import TransformTree, frame_name
 from pipelines.io.scan_folder import ScanFolder
 from pipelines.io.trajectory import read_trajectory
@@ -128,13 +128,11 @@ def read_poses(
             return read_tf_poses(path, value[len(TF_PREFIX) :], scans.frame_id())
     if not is_bag or not is_topic_name(value):
         return read_trajectory(Path(value))
-    topics = pose_topics(path)
-    if value not in topics:
-        listing = ", ".join(f"{name} ({kind.replace('/msg/', '/')})" for name, kind in topics.items()) or "none"
+    try:
+        times, poses, child = read_pose_messages(path, value)
+    except NotAPoseTopic as error:
         raise ValueError(f"{value}: neither a trajectory file nor a topic of poses in {path} (its topics of poses: "
-                         f"{listing})")  # fmt: skip
-    times, poses = read_pose_topic(path, value)
-    child = pose_topic_child_frame(path, value)
+                         f"{error.listing})") from None  # fmt: skip
     with BagScans(path, topic) as scans:
         scans_frame = frame_name(scans.frame_id())
     if child is None or not scans_frame or frame_name(child) == scans_frame:

@@ -26,6 +26,14 @@ POSE_TYPES = (
 )
 
 
+class NotAPoseTopic(BagError):
+    """A topic that is not a topic of poses; `listing` names those the bag has."""
+
+    def __init__(self, message: str, listing: str) -> None:
+        super().__init__(message)
+        self.listing = listing
+
+
 _TOPIC_NAME = re.compile(r"/?[A-Za-z~][A-Za-z0-9_~]*(/[A-Za-z_][A-Za-z0-9_]*)*")  # ROS names hold no dots
 
 
@@ -49,23 +57,6 @@ def topics_of_poses(reader: Any) -> dict[str, str]:
     return {name: info.msgtype for name, info in reader.topics.items() if info.msgtype in POSE_TYPES and info.msgcount}
 
 
-def pose_topic_child_frame(path: str | Path, topic: str) -> str | None:
-    """The frame whose pose a topic of poses holds, where its messages name it: the child_frame_id of the first
-    nav_msgs/Odometry or TransformStamped message; None for the other types, or a topic without messages."""
-    reader = open_reader(Path(path))
-    try:
-        connections = [c for c in reader.connections if c.topic == topic]
-        if not connections or connections[0].msgtype not in (ODOMETRY, "geometry_msgs/msg/TransformStamped"):
-            return None
-        for connection, _, raw in reader.messages(connections):
-            return str(reader.deserialize(raw, connection.msgtype).child_frame_id) or None
-        return None
-    except Exception as error:  # corrupt or truncated data: rosbags raises many types
-        raise BagError(f"{path}: {topic}: corrupt or truncated bag ({one_line(error)})") from None
-    finally:
-        reader.close()
-
-
 def _pose_row(msg: Any, msgtype: str) -> list[float]:
     """x y z qx qy qz qw of one message."""
     if msgtype == "geometry_msgs/msg/TransformStamped":
@@ -81,22 +72,38 @@ def read_pose_topic(path: str | Path, topic: str) -> tuple[np.ndarray, np.ndarra
     message's child frame (Odometry, TransformStamped) or of its header's frame's pose (PoseStamped, ...).
 
     Raises:
-        BagError: the bag cannot be read; `topic` is not a topic of stamped poses (the message lists those the bag
-            has); a message without a valid pose (a quaternion of length far from 1, a non-finite number).
+        BagError: the bag cannot be read; `topic` is not a topic of stamped poses (NotAPoseTopic: the message lists
+            those the bag has); a message without a valid pose (a quaternion of length far from 1, a non-finite
+            number).
+    """
+    times, poses, _ = read_pose_messages(path, topic)
+    return times, poses
+
+
+def read_pose_messages(path: str | Path, topic: str) -> tuple[np.ndarray, np.ndarray, str | None]:
+    """`read_pose_topic`'s (times, poses) and the frame whose poses they are where the messages name it: the
+    child_frame_id of the first nav_msgs/Odometry or TransformStamped message; None for the other types.
+
+    Raises:
+        BagError: as `read_pose_topic`.
     """
     path = Path(path)
     reader = open_reader(path)
     try:
         available = topics_of_poses(reader)
         if topic not in available:
-            listing = ", ".join(f"{name} ({kind.replace('/msg/', '/')})" for name, kind in available.items())
-            raise BagError(f"{path}: {topic} is not a topic of poses in the bag (topics of poses: {listing or 'none'})")
+            listing = ", ".join(f"{name} ({kind.replace('/msg/', '/')})" for name, kind in available.items()) or "none"
+            raise NotAPoseTopic(
+                f"{path}: {topic} is not a topic of poses in the bag (topics of poses: {listing})", listing
+            )
         msgtype = available[topic]
         connections = [c for c in reader.connections if c.topic == topic]
-        stamps, recorded, rows = [], [], []
+        stamps, recorded, rows, frame = [], [], [], None
         try:
             for connection, record_ns, raw in reader.messages(connections):
                 msg = reader.deserialize(raw, connection.msgtype)
+                if not stamps and msgtype in (ODOMETRY, "geometry_msgs/msg/TransformStamped"):
+                    frame = str(msg.child_frame_id) or None
                 stamps.append(int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec))
                 recorded.append(record_ns)
                 rows.append(_pose_row(msg, msgtype))
@@ -115,4 +122,4 @@ def read_pose_topic(path: str | Path, topic: str) -> tuple[np.ndarray, np.ndarra
     times_ns, rows = times_ns[order], rows[order]
     last_of_each = np.append(np.diff(times_ns) > 0, True)  # of poses stamped alike, the one recorded last
     seconds, nanoseconds = np.divmod(times_ns[last_of_each], 1_000_000_000)
-    return seconds + nanoseconds * 1e-9, poses_from_rows(rows[last_of_each])
+    return seconds + nanoseconds * 1e-9, poses_from_rows(rows[last_of_each]), frame
