@@ -16,6 +16,13 @@ def time_field(names: Iterable[str]) -> str | None:
     return next((name for name in TIME_FIELDS if name in names), None)
 
 
+def carries_livox_tags(names: Iterable[str], tag_is_uint8: bool) -> bool:
+    """Whether a cloud's fields are those of a Livox driver (livox_ros_driver(2)'s PointCloud2, the PCD files written
+    from it): a uint8 `tag` beside a `line` field. Another driver's `tag` is not read as Livox's."""
+    names = set(names)
+    return tag_is_uint8 and "tag" in names and "line" in names
+
+
 def returns(points: np.ndarray, livox_tags: np.ndarray | None = None) -> np.ndarray | None:
     """Mask of the (N, 3) points that are returns: finite, not exactly at the origin (the no-return points of
     Ouster drivers), and, given Livox tags (N,), not tagged as noise (`livox_noise`); None when every point is one."""

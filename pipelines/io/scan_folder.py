@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from pipelines.io.lidar_points import relative_seconds, returns, time_field
+from pipelines.io.lidar_points import carries_livox_tags, relative_seconds, returns, time_field
 from pipelines.io.pointclouds import load_kitti_bin
 from pipelines.io.trajectory import read_kitti
 from sandro_slam.scan import Scan
@@ -122,7 +122,7 @@ def stamps_from_names(stems: list[str]) -> np.ndarray | None:
 
 def _read_scan(path: Path, stamp: float) -> tuple[np.ndarray, np.ndarray]:
     """(points (N, 3) float64 [m], per-point times [s] relative to `stamp` or empty) of one scan file; the points
-    that are no returns dropped."""
+    that are no returns, or that a Livox sensor tagged as noise, dropped (`lidar_points.returns`)."""
     if path.suffix.lower() == ".bin":
         try:
             return load_kitti_bin(path), np.empty(0)
@@ -134,7 +134,8 @@ def _read_scan(path: Path, stamp: float) -> tuple[np.ndarray, np.ndarray]:
     points = cloud.point.positions.numpy().astype(np.float64)
     name = time_field(cloud.point)
     times = relative_seconds(cloud.point[name].numpy(), stamp) if name else np.empty(0)
-    keep = returns(points)
+    livox = carries_livox_tags(cloud.point, "tag" in cloud.point and cloud.point["tag"].dtype == o3d.core.uint8)
+    keep = returns(points, cloud.point["tag"].numpy().reshape(-1) if livox else None)
     if keep is not None:
         points = points[keep]
         times = times[keep] if len(times) else times

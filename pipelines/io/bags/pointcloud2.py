@@ -7,7 +7,13 @@ from typing import Any
 import numpy as np
 from rosbags.typesys.store import Typestore
 
-from pipelines.io.lidar_points import nanoseconds_after_stamp, relative_seconds, returns, time_field
+from pipelines.io.lidar_points import (
+    carries_livox_tags,
+    nanoseconds_after_stamp,
+    relative_seconds,
+    returns,
+    time_field,
+)
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 LAYOUTS = ("compact", "ouster")
@@ -24,9 +30,8 @@ def pointcloud2_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     Any layout: x, y, z of any numeric datatype, any point_step, padding and extra fields, row_step beyond
     width * point_step, organized clouds (height > 1), either byte order. Decoded through a strided numpy
     view of `data`, without a loop over points. Points that are not finite (is_dense false), exactly at the
-    origin (the no-return points of Ouster drivers) or tagged as noise by a Livox sensor (a uint8 `tag` field
-    beside a `line` field: livox_ros_driver(2)'s PointCloud2; `lidar_points.livox_noise`) are dropped, with their
-    times.
+    origin (the no-return points of Ouster drivers) or tagged as noise by a Livox sensor
+    (`lidar_points.carries_livox_tags`, `lidar_points.livox_noise`) are dropped, with their times.
 
     Per-point time: the first field named t, time, timestamp, time_offset or offset_time, of any datatype, read
     by the rules of `lidar_points.relative_seconds` (unit and reference from the values themselves).
@@ -39,7 +44,7 @@ def pointcloud2_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     if missing:
         raise PointCloud2Error(f"PointCloud2 without {'/'.join(missing)} field (fields: {', '.join(fields) or 'none'})")
     time_name = time_field(fields)
-    livox = "tag" in fields and "line" in fields and fields["tag"].datatype == 2  # uint8: livox_ros_driver(2)'s
+    livox = carries_livox_tags(fields, "tag" in fields and fields["tag"].datatype == 2)  # 2: uint8
     names = ["x", "y", "z"] + ([time_name] if time_name else []) + (["tag"] if livox else [])
     order = ">" if msg.is_bigendian else "<"
     formats = []

@@ -29,6 +29,19 @@ def test_pcd_scans_with_times_txt_and_a_time_field(tmp_path):
     np.testing.assert_allclose(scans[0].times, [0.0, 1e-6, 3e-6])
 
 
+@pytest.mark.parametrize("line", [True, False])
+def test_livox_noise_tags_drop_points_only_beside_a_line_field(tmp_path, line):
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    fields = {"tag": np.array([0x00, 0x01, 0x10, 0x04], dtype=np.uint8)}  # kept, noise, 2nd return (kept), noise
+    if line:
+        fields["line"] = np.zeros(4, dtype=np.uint8)
+    points = POINTS + 1.0  # no point at the origin
+    write_point_cloud(folder / "000000.pcd", points, dtype=np.float32, fields=fields)
+    scan = next(iter(ScanFolder(folder, rate=10.0)))
+    np.testing.assert_allclose(scan.points, points[[0, 2]] if line else points, atol=1e-6)
+
+
 def test_times_from_file_names_or_a_rate(tmp_path):
     assert stamps_from_names(["1700000000.5", "1700000000.6"]).tolist() == [1700000000.5, 1700000000.6]
     np.testing.assert_allclose(stamps_from_names(["1700000000000000000", "1700000000100000000"]), [1.7e9, 1.7e9 + 0.1])
