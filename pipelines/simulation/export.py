@@ -12,6 +12,7 @@ Folder formats:
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,7 @@ from pipelines.io.atomic import atomic_dir, atomic_path
 from pipelines.io.bags import write_bag
 from pipelines.io.pointclouds import write_kitti_bin, write_point_cloud
 from pipelines.io.trajectory import write_kitti, write_tum
-from pipelines.simulation.drift import drifted
+from pipelines.simulation.drift import Drift, drifted
 from pipelines.simulation.sequence import SimulatedSequence, simulate_sequence
 from sandro_slam.scan import Scan
 
@@ -72,12 +73,13 @@ def simulate(
     with atomic_path(ground_truth_path(out)) as gt_tmp:
         write_tum(gt_tmp, start_time + gt_times, sequence.poses_at(gt_times))
         if fmt in BAG_FORMATS and odometry_topic is not None:
-            deskewed = [sequence.deskewed(i) for i in indices]
-            scans = [Scan(start_time + scan.timestamp, scan.points, scan.times) for scan, _ in deskewed]
-            odometry = drifted(np.array([T for _, T in deskewed]), drift)
+            # Streamed: the writer takes each pose just before its scan, so the two copies stay one scan apart
+            for_scans, for_poses = itertools.tee(sequence.deskewed(i) for i in indices)
+            odometry = Drift(drift)
             return write_bag(
-                out, fmt, scans, topic=topic, overwrite=overwrite, message=message,
-                odometry=(np.array([scan.timestamp for scan in scans]), odometry), odometry_topic=odometry_topic,
+                out, fmt, (Scan(start_time + scan.timestamp, scan.points, scan.times) for scan, _ in for_scans),
+                topic=topic, overwrite=overwrite, message=message, odometry_topic=odometry_topic,
+                odometry=((start_time + scan.timestamp, odometry(T)) for scan, T in for_poses),
             )  # fmt: skip
         if fmt in BAG_FORMATS:
             scans = (sequence.frame(i) for i in indices)

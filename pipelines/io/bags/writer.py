@@ -4,7 +4,7 @@ or mcap), and beside them, optionally, a front end's odometry as nav_msgs/Odomet
 from __future__ import annotations
 
 import shutil
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +48,7 @@ def write_bag(
     layout: str = "compact",
     overwrite: bool = False,
     message: str = "pointcloud2",
-    odometry: tuple[np.ndarray, np.ndarray] | None = None,
+    odometry: Iterable[tuple[float, np.ndarray]] | None = None,
     odometry_topic: str = "/odometry",
 ) -> int:
     """Write scans as messages of type `message` (`MESSAGES`) into a new bag; returns the number of scan messages.
@@ -59,9 +59,10 @@ def write_bag(
             consumed one at a time. Each message is recorded when its sweep ends (stamp + max(times)), as a
             driver publishes it, so the record time differs from header.stamp.
         layout: the point layout of PointCloud2 messages (`scan_cloud`).
-        odometry: (times (M,) [s], T_odom_sensor (M, 4, 4)) written on `odometry_topic` as nav_msgs/Odometry
-            (frame "odom", child frame `frame_id`, recorded at their stamps), as a LiDAR-inertial front end
-            publishes its poses beside its deskewed scans.
+        odometry: (time [s], T_odom_sensor (4, 4)) pairs in time order, written on `odometry_topic` as
+            nav_msgs/Odometry (frame "odom", child frame `frame_id`, recorded at their stamps), as a LiDAR-inertial
+            front end publishes its poses beside its deskewed scans; consumed as the scans are, each before the
+            first scan recorded after it. ValueError where a time goes back.
         overwrite: replace an existing `path`; otherwise FileExistsError.
 
     Written atomically: under a temporary name beside `path`, renamed at the end, removed on any error or
@@ -88,29 +89,40 @@ def write_bag(
         return encode_pointcloud2(typestore, stamp, scan_cloud(points, times, layout), frame_id)
 
     serialize = typestore.serialize_ros1 if fmt == "ros1" else typestore.serialize_cdr
-    poses = [] if odometry is None else _odometry_messages(typestore, serialize, *odometry, frame_id)
+    poses = () if odometry is None else _odometry_messages(typestore, serialize, odometry, frame_id)
     if fmt == "ros1":
         with atomic_path(path) as tmp, Writer1(tmp) as writer:
             connection = writer.add_connection(topic, msgtype, typestore=typestore)
-            pose_connection = writer.add_connection(odometry_topic, ODOMETRY, typestore=typestore) if poses else None
+            pose_connection = None
+            if odometry is not None:
+                pose_connection = writer.add_connection(odometry_topic, ODOMETRY, typestore=typestore)
             return _write_scans(writer, connection, msgtype, serialize, encode, scans, pose_connection, poses)
     plugin = StoragePlugin.SQLITE3 if fmt == "ros2-sqlite3" else StoragePlugin.MCAP
     with atomic_dir(path) as tmp, Writer2(tmp, version=Writer2.VERSION_LATEST, storage_plugin=plugin) as writer:
         connection = writer.add_connection(topic, msgtype, typestore=typestore)
-        pose_connection = writer.add_connection(odometry_topic, ODOMETRY, typestore=typestore) if poses else None
+        pose_connection = None
+        if odometry is not None:
+            pose_connection = writer.add_connection(odometry_topic, ODOMETRY, typestore=typestore)
         return _write_scans(writer, connection, msgtype, serialize, encode, scans, pose_connection, poses)
 
 
 def _odometry_messages(
-    typestore: Any, serialize: Callable[[Any, str], Any], times: np.ndarray, poses: np.ndarray, frame_id: str
-) -> list[tuple[int, Any]]:
-    """(record time [ns], serialized nav_msgs/Odometry) of each pose, in time order."""
+    typestore: Any, serialize: Callable[[Any, str], Any], odometry: Iterable[tuple[float, np.ndarray]], frame_id: str
+) -> Iterator[tuple[int, Any]]:
+    """(record time [ns], serialized nav_msgs/Odometry) of each (time [s], T_odom_sensor) pair, one at a time.
+
+    Raises:
+        ValueError: a time before the one before it.
+    """
     types = typestore.types
-    times, poses = np.asarray(times, dtype=np.float64), np.asarray(poses, dtype=np.float64)
-    quaternions = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x y z w
     zero = types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
-    messages = []
-    for stamp, T, q in zip(times, poses, quaternions):
+    last = -np.inf
+    for stamp, T in odometry:
+        if stamp < last:
+            raise ValueError(f"odometry times must not go back ({stamp} s after {last} s)")
+        last = stamp
+        T = np.asarray(T, dtype=np.float64)
+        q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x y z w
         pose = types["geometry_msgs/msg/Pose"](
             position=types["geometry_msgs/msg/Point"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
             orientation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
@@ -123,8 +135,7 @@ def _odometry_messages(
                 twist=types["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36)
             ),
         )
-        messages.append((round(stamp * 1e9), serialize(msg, ODOMETRY)))
-    return sorted(messages, key=lambda item: item[0])
+        yield round(stamp * 1e9), serialize(msg, ODOMETRY)
 
 
 def _write_scans(
@@ -135,7 +146,7 @@ def _write_scans(
     encode: Callable[[float, np.ndarray, np.ndarray], Any],
     scans: Iterable[Scan],
     pose_connection: Any = None,
-    poses: list[tuple[int, Any]] = (),
+    poses: Iterable[tuple[int, Any]] = (),
 ) -> int:
     """Write the scans, and the serialized `poses` on `pose_connection` interleaved with them by record time."""
     count, pending = 0, iter(poses)

@@ -111,7 +111,7 @@ def test_a_front_ends_bag_runs_on_its_odometry_topic(tmp_path, capsys):
     world = tmp_path / "world.bag"
     with BagScans(bag) as scans:
         moved = [Scan(t, transform_points(T, points), times) for (t, points, times), T in zip(scans, topic)]
-    write_bag(world, "ros1", moved, odometry=(topic_times, topic))
+    write_bag(world, "ros1", moved, odometry=zip(topic_times, topic))
     assert main([str(world), "--odometry", "/odometry", "--out", str(out), "--quiet"]) == 0
     assert "warning: the scans seem to be in the odometry's world frame" in capsys.readouterr().err
     assert main([str(world), "--out", str(out), "--quiet"]) == 0  # KISS-ICP on them: it stands still

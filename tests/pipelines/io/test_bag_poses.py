@@ -37,13 +37,21 @@ def test_odometry_written_beside_the_scans_reads_back(tmp_path, fmt, name):
     times = START + 0.1 * np.arange(12)
     poses = _poses(12)
     path = tmp_path / name
-    assert write_bag(path, fmt, _scans(times), odometry=(times, poses), odometry_topic="/lio/odometry") == 12
+    assert write_bag(path, fmt, _scans(times), odometry=zip(times, poses), odometry_topic="/lio/odometry") == 12
     assert pose_topics(path) == {"/lio/odometry": "nav_msgs/msg/Odometry"}
     read_times, read = read_pose_topic(path, "/lio/odometry")
     np.testing.assert_allclose(read_times, times, rtol=0.0, atol=1e-6)
     np.testing.assert_allclose(read, poses, rtol=0.0, atol=1e-9)
     with pytest.raises(BagError, match=r"/points is not a topic of poses .*/lio/odometry \(nav_msgs/Odometry\)"):
         read_pose_topic(path, "/points")
+
+
+def test_odometry_whose_time_goes_back_leaves_no_bag(tmp_path):
+    times = START + 0.1 * np.arange(5)
+    odometry = zip(times[[0, 1, 3, 2, 4]], _poses(5))
+    with pytest.raises(ValueError, match="must not go back"):
+        write_bag(tmp_path / "a.bag", "ros1", _scans(times), odometry=odometry)
+    assert not any(tmp_path.iterdir())
 
 
 def _write_messages(path, msgtype: str, messages: list[tuple[int, object]], topic: str = "/pose") -> None:
@@ -120,7 +128,7 @@ def test_an_option_names_a_trajectory_file_or_a_topic_of_the_bag(tmp_path):
     times = START + 0.1 * np.arange(4)
     poses = _poses(4)
     bag = tmp_path / "drive.bag"
-    write_bag(bag, "ros1", _scans(times), odometry=(times, poses))
+    write_bag(bag, "ros1", _scans(times), odometry=zip(times, poses))
     np.testing.assert_allclose(read_poses("/odometry", bag)[1], poses, atol=1e-9)
     write_tum(tmp_path / "poses.tum", times, poses[::-1])
     np.testing.assert_allclose(read_poses(str(tmp_path / "poses.tum"), bag)[1], poses[::-1], atol=1e-9)
