@@ -44,6 +44,7 @@ _POINT_NAMES = ["offset_time", "x", "y", "z", "tag"]
 _POINT_FORMATS = ["u4", "f4", "f4", "f4", "u1"]
 _POINT_OFFSETS = [0, 4, 8, 12, 17]
 _POINT_SIZE = 19  # offset_time, x, y, z, reflectivity, tag, line
+_FRAME_ID_AT = 16  # byte of header.frame_id's text, in ROS1 and in CDR bytes alike
 
 
 class CustomMsgError(ValueError):
@@ -100,30 +101,37 @@ def custom_msg_arrays(raw: bytes | memoryview, cdr: bool) -> tuple[int, np.ndarr
 def custom_msg_frame_id(raw: bytes | memoryview, cdr: bool) -> str:
     """header.frame_id of one serialized CustomMsg (ROS1, or CDR of either byte order)."""
     data = memoryview(raw).cast("B")
-    order = ">" if cdr and data[1] != 1 else "<"
-    (length,) = struct.unpack_from(order + "I", data, 12)  # after seq, sec, nsec (ROS1) or the CDR header, sec, nsec
-    text = bytes(data[16 : 16 + length])
-    return text.rstrip(b"\0").decode("utf-8", errors="replace")
+    _, _, length = _header(data, cdr)
+    return bytes(data[_FRAME_ID_AT : _FRAME_ID_AT + length]).rstrip(b"\0").decode("utf-8", errors="replace")
+
+
+def _header(data: memoryview, cdr: bool) -> tuple[str, int, int]:
+    """(byte order, header.stamp [ns], length of header.frame_id in bytes) of ROS1 bytes (seq, sec, nsec, then
+    frame_id's length) or CDR bytes (a 4-byte encapsulation header whose second byte is 1 for little endian, sec,
+    nsec, then frame_id's length, its terminating zero counted): frame_id's text starts at byte `_FRAME_ID_AT` in
+    both."""
+    order = ("<" if data[1] == 1 else ">") if cdr else "<"
+    sec, nsec, length = struct.unpack_from(order + ("iII" if cdr else "III"), data, 4)  # sec: int32 in ROS2
+    return order, sec * 1_000_000_000 + nsec, length
 
 
 def _ros1_layout(data: memoryview) -> tuple[int, int, int, int, str, int]:
     """(stamp ns, timebase ns, point count, offset of the first point, byte order, point stride) of ROS1 bytes:
     header (seq, sec, nsec, frame_id), timebase, point_num, lidar_id, rsvd[3], then the points' length and the
     points, packed."""
-    _, sec, nsec, frame_length = struct.unpack_from("<4I", data, 0)
-    position = 16 + frame_length
+    _, stamp_ns, frame_length = _header(data, cdr=False)
+    position = _FRAME_ID_AT + frame_length
     timebase, _, _, count = struct.unpack_from("<QIB3xI", data, position)
-    return sec * 1_000_000_000 + nsec, timebase, count, position + 20, "<", _POINT_SIZE
+    return stamp_ns, timebase, count, position + 20, "<", _POINT_SIZE
 
 
 def _cdr_layout(data: memoryview) -> tuple[int, int, int, int, str, int]:
-    """The same for CDR bytes: a 4-byte encapsulation header (its second byte 1 for little endian), then every
-    value aligned to its own size counted from the end of that header, so a point takes 20 bytes."""
-    order = "<" if data[1] == 1 else ">"
-    sec, nsec, frame_length = struct.unpack_from(order + "iII", data, 4)
-    position = _aligned(12 + frame_length, 8)  # body offset of timebase
+    """The same for CDR bytes: every value aligned to its own size counted from the end of the 4-byte encapsulation
+    header, so a point takes 20 bytes."""
+    order, stamp_ns, frame_length = _header(data, cdr=True)
+    position = _aligned(_FRAME_ID_AT - 4 + frame_length, 8)  # body offset of timebase
     timebase, _, _, count = struct.unpack_from(order + "QIB3xI", data, 4 + position)
-    return sec * 1_000_000_000 + nsec, timebase, count, 4 + position + 20, order, _aligned(_POINT_SIZE, 4)
+    return stamp_ns, timebase, count, 4 + position + 20, order, _aligned(_POINT_SIZE, 4)
 
 
 def _aligned(position: int, size: int) -> int:
