@@ -133,9 +133,11 @@ def read_poses(
     except NotAPoseTopic as error:
         raise ValueError(f"{value}: neither a trajectory file nor a topic of poses in {path} (its topics of poses: "
                          f"{error.listing})") from None  # fmt: skip
+    if child is None:  # poses of the frame their messages' headers name: nothing to compare with the scans'
+        return times, poses
     with BagScans(path, topic) as scans:
         scans_frame = frame_name(scans.frame_id())
-    if child is None or not scans_frame or frame_name(child) == scans_frame:
+    if not scans_frame or frame_name(child) == scans_frame:
         return times, poses
     extrinsic = TransformTree(path).static(child, scans_frame)
     if notes is not None and extrinsic is not None:
