@@ -10,8 +10,10 @@ Geman-McClure cost. When the solution bends the odometry beyond its covariances,
 initial values (the odometry) and the solution of lower TLS cost stands: loops aliased by a repeated structure
 agree with each other, and can be grown into such a solution. Last, a loop whose removal would lower the cost of
 the rest beyond chance goes: a wrong loop can bend poses that long odometry holds loosely until its own error is
-small. Where the seed loops fit far worse than their covariances say, every threshold grows with them. See
-docs/back-end.md for the measurements behind the settings below.
+small. Where the seed loops fit far worse than their covariances say, every threshold grows with them. All of it
+runs on the graph with its plain odometry runs condensed (`chain_reduction`: poses that only odometry holds are
+not solved for while loops are decided); the whole graph is solved once at the end. See docs/back-end.md for the
+measurements behind the settings below.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import gtsam
 import numpy as np
 from scipy.stats import chi2
 
+from sandro_slam.chain_reduction import condensed
 from sandro_slam.chordal import chordal_values
 from sandro_slam.config import GraphConfig
 from sandro_slam.covariance import FactorCovariances
@@ -86,6 +89,9 @@ def robust_optimize(
     it keeps more than `MIN_KEPT_SHARE` of the loops the first kept and fits them clearly better
     (`_scaled_run_wins`). Graphs whose loops differ in dimension keep the first run.
     none: plain Levenberg-Marquardt, every weight 1.
+    The loops are decided on the graph with its runs of plain poses condensed (`chain_reduction.condensed`; the
+    seeds are found on the whole graph, where the odometry's steps count the neighbourhood), and the whole graph is
+    then solved with the factors kept, from the condensed solution.
     """
     if config.robust == "none":
         return gtsam.LevenbergMarquardtOptimizer(graph, initial).optimize(), np.ones(graph.size())
@@ -93,6 +99,29 @@ def robust_optimize(
     if not len(loops):
         return refined(graph, initial, np.ones(graph.size())), np.ones(graph.size())
     seed = loops[supported_loops(graph, known_inliers)] if config.robust == "gnc_tls" else loops[:0]
+    reduced = condensed(graph, initial, known_inliers)
+    if reduced is None:
+        return _decided(graph, initial, known_inliers, config, seed)
+    position = {int(index): n for n, index in enumerate(reduced.original)}
+    reduced_seed = np.array([position[int(index)] for index in seed], dtype=int)
+    values, weights = _decided(
+        reduced.graph, reduced.initial, reduced.known_inliers, config, reduced_seed, reduced.hidden_dims
+    )
+    whole = reduced.weights_of_whole(weights, graph.size())
+    return refined(graph, reduced.values_of_whole(values), whole), whole
+
+
+def _decided(
+    graph: gtsam.NonlinearFactorGraph,
+    initial: gtsam.Values,
+    known_inliers: list[int],
+    config: GraphConfig,
+    seed: np.ndarray,
+    hidden_dims: int = 0,
+) -> tuple[gtsam.Values, np.ndarray]:
+    """`robust_optimize` from its `seed` loops on, on `graph` or on its condensed form (`chain_reduction`), whose
+    condensing removed `hidden_dims` measurement dimensions and as many unknowns."""
+    loops = _loop_indices(graph.size(), known_inliers)
     dims = np.array([graph.at(int(i)).dim() for i in loops])
     thresholds = chi2.ppf(config.inlier_probability, dims)
     seeded = _seeded(graph, initial, known_inliers, seed, thresholds)
@@ -100,7 +129,7 @@ def robust_optimize(
     if seeded is not None:
         scales = (1.0, 1.0)  # of the loops' and the poses' covariances in the innovation test
         if config.noise_scale == "estimated":
-            ratio, loop_scale, pose_scale = _seed_scales(graph, *seeded, known_inliers)
+            ratio, loop_scale, pose_scale = _seed_scales(graph, *seeded, known_inliers, hidden_dims)
             if ratio > MIN_TIGHT_FACTOR:  # covariances too tight: every threshold grows
                 tight = loop_scale
                 thresholds = thresholds * tight
@@ -109,7 +138,7 @@ def robust_optimize(
         values, weights = _grown(graph, *seeded, known_inliers, thresholds, scales, covariances)
     else:
         values, weights = _gnc(graph, initial, known_inliers, config, 0.5 * thresholds[0])
-    if config.robust == "gnc_tls" and _strained(graph, values, known_inliers, tight):
+    if config.robust == "gnc_tls" and _strained(graph, values, known_inliers, tight, hidden_dims):
         judged = _truncated(graph, initial, np.ones(graph.size()), known_inliers, thresholds)
         values, weights = _lower_cost(graph, (values, weights), judged, known_inliers, thresholds)
     if seeded is not None:
@@ -212,13 +241,18 @@ def _dimensions(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> tupl
 
 
 def _strained(
-    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, known_inliers: list[int], scale: float = 1.0
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    known_inliers: list[int],
+    scale: float = 1.0,
+    hidden_dims: int = 0,
 ) -> bool:
     """Whether the known inliers (prior, odometry) fit `values` worse than their covariances (times `scale`) say:
-    their squared whitened errors sum to more than `scale` times their dimensions. At a least-squares optimum they
-    sum to less (the fit absorbs part of their noise); above it, the loops kept bend the odometry."""
+    their squared whitened errors sum to more than `scale` times their dimensions (with `hidden_dims`, those of
+    the odometry steps a condensed graph folded into its runs' factors). At a least-squares optimum they sum to less
+    (the fit absorbs part of their noise); above it, the loops kept bend the odometry."""
     squared = sum(2.0 * graph.at(i).error(values) for i in known_inliers)
-    return squared > scale * sum(graph.at(i).dim() for i in known_inliers)
+    return squared > scale * (sum(graph.at(i).dim() for i in known_inliers) + hidden_dims)
 
 
 def _lower_cost(
@@ -329,20 +363,25 @@ def _admitted(
 
 
 def _seed_scales(
-    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, weights: np.ndarray, known_inliers: list[int]
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    weights: np.ndarray,
+    known_inliers: list[int],
+    hidden_dims: int = 0,
 ) -> tuple[float, float, float]:
     """How the seed solution (`values`, `weights`) fits against its covariances: (the seed loops'
     `variance_factor`; that over the mean share of a factor's error a least-squares fit leaves (redundancy over
     measurement dimensions: the fit pulls every factor's error below its noise), how many times the loops'
     covariances understate (above 1) or overstate their noise; the seed solution's a-posteriori variance factor
     (2 cost / redundancy), the same for the poses'). The median, not the cost, for the loops: a wrong seed inflates
-    the cost. Without redundancy the fit says nothing of the noise: both scales 1."""
+    the cost. Without redundancy the fit says nothing of the noise: both scales 1. `hidden_dims`: the measurement
+    dimensions (and unknowns) a condensed graph folded away, counted as in the whole graph."""
     ratio = variance_factor(graph, values, weights, known_inliers)
     kept = _kept(graph, weights)
     measured, redundancy = _dimensions(kept, values)
     if redundancy <= 0:
         return ratio, 1.0, 1.0
-    return ratio, ratio * measured / redundancy, 2.0 * kept.error(values) / redundancy
+    return ratio, ratio * (measured + hidden_dims) / redundancy, 2.0 * kept.error(values) / redundancy
 
 
 def _chi2_ratio(factor: gtsam.NonlinearFactor, values: gtsam.Values) -> float:
