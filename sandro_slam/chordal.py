@@ -5,7 +5,7 @@ far, and creeps along the flat valleys of graphs that long odometry holds loosel
 the optimum in a few iterations (Carlone et al., "Initialization techniques for 3D SLAM", ICRA 2015). 3D: gtsam's
 InitializePose3 (chordal rotations, then the translations' linear least squares); 2D: gtsam's LAGO, which takes
 diagonal noise models only, so it gets each factor's covariance diagonal (the start only, not the solution), and
-its spanning tree along consecutive keys (bridged where odometry chains leave gaps), else from the graph.
+its spanning tree along the keys in their order (bridged where odometry chains leave gaps), else from the graph.
 Each connected part of the graph is relaxed on its own and placed by its own prior; where the covariances leave a
 rotation free, with every measurement weighed alike.
 """
@@ -145,9 +145,37 @@ def _relaxed(graph: gtsam.NonlinearFactorGraph, is3d: bool) -> gtsam.Values | No
     try:
         if is3d:
             return gtsam.InitializePose3.initialize(graph)
-        return gtsam.lago.initialize(*_with_odometric_path(_reweighted(graph, is3d)))
+        reweighted = _reweighted(graph, is3d)
+        ranked, keys = _ranked(reweighted)
+        values = gtsam.lago.initialize(*_with_odometric_path(ranked))
     except (RuntimeError, IndexError):  # gtsam: an indeterminate system, or LAGO's spanning tree misses a pose
         return None
+    if ranked is reweighted:
+        return values
+    out = gtsam.Values()
+    for number, key in enumerate(keys):
+        out.insert(key, values.atPose2(number))
+    return out
+
+
+def _ranked(graph: gtsam.NonlinearFactorGraph) -> tuple[gtsam.NonlinearFactorGraph, list[int]]:
+    """`graph` (2D between and prior factors) with its keys numbered 0, 1, ... in their order, and the keys by their
+    number; `graph` itself where they are consecutive already. A graph the robust back end condensed
+    (`chain_reduction`) holds its odometry between keys that follow each other with gaps in their numbers: numbered
+    again, LAGO takes its tree along them (`_with_odometric_path`) instead of searching one."""
+    keys = sorted(graph.keyVector())
+    if not keys or keys[-1] - keys[0] == len(keys) - 1:
+        return graph, keys
+    number = {key: n for n, key in enumerate(keys)}
+    out = gtsam.NonlinearFactorGraph()
+    for i in range(graph.size()):
+        factor = graph.at(i)
+        if isinstance(factor, gtsam.BetweenFactorPose2):
+            a, b = factor.keys()
+            out.add(gtsam.BetweenFactorPose2(number[a], number[b], factor.measured(), factor.noiseModel()))
+        else:
+            out.add(gtsam.PriorFactorPose2(number[factor.keys()[0]], factor.prior(), factor.noiseModel()))
+    return out, keys
 
 
 def _reweighted(graph: gtsam.NonlinearFactorGraph, is3d: bool, isotropic: bool = False) -> gtsam.NonlinearFactorGraph:

@@ -189,3 +189,26 @@ def test_a_planar_graph_whose_covariances_leave_roll_and_pitch_free_has_a_relaxa
     start = chordal_values(graph, identity)
     assert start is not None
     assert graph.error(start) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_lago_takes_its_tree_along_keys_in_order_whose_numbers_leave_gaps(monkeypatch):
+    """A graph the robust back end condensed keeps its odometry between keys that follow each other with gaps in their
+    numbers: the relaxation numbers them again and LAGO takes the odometry as its tree, the same relaxation."""
+    graph, _, _, identity = _graph(_circle_poses(3, 20), 20, n_wrong=0, seed=0, rotation_sigma=0.05)
+    spread, spread_identity = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    for i in range(graph.size()):
+        factor = graph.at(i)
+        if isinstance(factor, gtsam.BetweenFactorPose2):
+            a, b = factor.keys()
+            spread.add(gtsam.BetweenFactorPose2(3 * a, 3 * b, factor.measured(), factor.noiseModel()))
+        else:
+            spread.add(gtsam.PriorFactorPose2(3 * factor.keys()[0], factor.prior(), factor.noiseModel()))
+    for key in identity.keys():
+        spread_identity.insert(3 * key, identity.atPose2(key))
+    along = []
+    initialize = gtsam.lago.initialize
+    monkeypatch.setattr(gtsam.lago, "initialize", lambda g, path=True: along.append(path) or initialize(g, path))
+    start, spread_start = chordal_values(graph, identity), chordal_values(spread, spread_identity)
+    assert along == [True, True]
+    for key in identity.keys():
+        np.testing.assert_allclose(spread_start.atPose2(3 * key).matrix(), start.atPose2(key).matrix(), atol=1e-9)
