@@ -4,8 +4,10 @@ The information matrix J^T J of the linearised, whitened graph is factorised as 
 symmetric fill-reducing ordering and no pivoting) and inverted on the pattern of L only (Takahashi's recurrence,
 "selected inversion", in dense blocks over L's supernodes): every variable's marginal covariance and the
 cross-covariance of the variables of every factor, for about the cost of the factorisation, instead of one
-back-substitution per variable. Blocks are in gtsam's tangent convention of each variable (the factors' own
-linearisation: Pose3 [rotation, translation] on the right).
+back-substitution per variable. What a factor outside the graph (a loop candidate) would see of the variables it
+joins comes from forward substitutions with the same factor, along the elimination tree's paths from its variables
+to the root only. Blocks are in gtsam's tangent convention of each variable (the factors' own linearisation: Pose3
+[rotation, translation] on the right).
 """
 
 from __future__ import annotations
@@ -95,7 +97,8 @@ class FactorCovariances:
         )
         if not held:  # cannot happen in exact arithmetic: the symbolic pattern holds every entry of L
             raise ValueError("the factor has entries off its symbolic pattern")
-        self._z = _selected_inverse(self._indptr, self._indices, l_values, lu.U.diagonal())
+        self._l_values, self._d = l_values, lu.U.diagonal()
+        self._z = _selected_inverse(self._indptr, self._indices, l_values, self._d)
 
     def block(self, a: int, b: int) -> np.ndarray:
         """Cov(x_a, x_b), (dim a, dim b); a == b gives a's marginal covariance.
@@ -132,11 +135,9 @@ class FactorCovariances:
         """(len(factors),) b^T S^-1 b per factor linearised at `values`: b its whitened error vector, A its
         whitened Jacobian and S = `measurement_scale` I + `variable_scale` A Sigma A^T, Sigma its variables' joint
         covariance (`correlated`) or their marginal blocks alone (cross-covariances taken as zero). Batched over
-        the factors of one shape: the same as `projected` factor by factor.
-
-        Raises:
-            KeyError: a pair of a factor's variables is not on the pattern (`correlated` only).
-        """
+        the factors of one shape: the same as `projected` factor by factor. Factors whose variables the graph
+        does not join (loop candidates) need not be in it: their A Sigma A^T comes from forward substitutions
+        (`_solved_projections`) where Sigma is off the pattern."""
         out = np.empty(len(factors))
         groups: dict[tuple, tuple[list[int], list[np.ndarray], list[np.ndarray], list[np.ndarray]]] = {}
         for n, factor in enumerate(factors):
@@ -154,13 +155,24 @@ class FactorCovariances:
             if not correlated:
                 own = np.repeat(np.arange(len(dims)), dims)
                 sigma = np.where(own[:, None] == own[None, :], sigma, 0.0)
-            if np.isnan(sigma).any():
-                raise KeyError("a factor's joint covariance is not on the factor's pattern")
             A = np.stack(jacobians)
             b = np.stack(errors)
-            S = measurement_scale * np.eye(m) + variable_scale * (A @ sigma @ np.swapaxes(A, 1, 2))
+            off = np.isnan(sigma).any(axis=(1, 2))
+            projected = np.empty((len(A), m, m))
+            projected[~off] = A[~off] @ sigma[~off] @ np.swapaxes(A[~off], 1, 2)
+            if off.any():
+                projected[off] = self._solved_projections(A[off], stacked[off])
+            S = measurement_scale * np.eye(m) + variable_scale * projected
             out[positions] = np.einsum("nm,nm->n", b, np.linalg.solve(S, b[:, :, None])[:, :, 0])
         return out
+
+    def _solved_projections(self, A: np.ndarray, columns: np.ndarray) -> np.ndarray:
+        """(F, m, m) A Sigma A^T of F factors, A (F, m, k) their whitened Jacobians on the variable `columns`
+        (F, k): with H = P^T L D L^T P, A Sigma A^T = Y^T D^-1 Y, Y = L^-1 P G and G the Jacobian's rows laid out on
+        all variables (`_forward_projections`)."""
+        return _forward_projections(
+            self._indptr, self._indices, self._l_values, self._d, self._position[columns], np.ascontiguousarray(A)
+        )
 
     def _gathered(self, rows: np.ndarray, cols: np.ndarray, what: str) -> np.ndarray:
         """The covariance entries at variable columns `rows` x `cols`; KeyError naming `what` off the pattern."""
@@ -196,6 +208,42 @@ def _entries(indptr: np.ndarray, indices: np.ndarray, z: np.ndarray, rows: np.nd
                 hi = mid
         if lo < indptr[cols[n] + 1] and indices[lo] == rows[n]:
             out[n] = z[lo]
+    return out
+
+
+@numba.njit(cache=True)
+def _forward_projections(
+    indptr: np.ndarray, indices: np.ndarray, l_values: np.ndarray, d: np.ndarray, rows: np.ndarray, A: np.ndarray
+) -> np.ndarray:
+    """(F, m, m) Y^T D^-1 Y per factor, Y = L^-1 G (L unit lower triangular, CSC with sorted rows and the diagonal
+    first; D its diagonal), G (n, m) holding the factor's A (F, m, k) transposed at its `rows` (F, k) of L. The
+    entries of L^-1 g lie on the paths up the elimination tree (each column's parent: its first row below the
+    diagonal) from g's rows: the substitution visits those columns alone, in increasing order."""
+    n = len(d)
+    count, m, k = A.shape
+    out = np.empty((count, m, m))
+    y = np.zeros((n, m))
+    visited = np.full(n, -1)
+    path = np.empty(n, np.int64)
+    for f in range(count):
+        length = 0
+        for j in range(k):
+            node = rows[f, j]
+            y[node, :] += A[f, :, j]
+            while node != -1 and visited[node] != f:
+                visited[node] = f
+                path[length] = node
+                length += 1
+                node = indices[indptr[node] + 1] if indptr[node + 1] - indptr[node] > 1 else -1
+        columns = np.sort(path[:length])
+        M = np.zeros((m, m))
+        for c in columns:
+            yc = y[c, :].copy()
+            for p in range(indptr[c] + 1, indptr[c + 1]):
+                y[indices[p], :] -= l_values[p] * yc
+            M += np.outer(yc, yc) / d[c]
+            y[c, :] = 0.0
+        out[f] = M
     return out
 
 

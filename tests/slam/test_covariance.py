@@ -84,6 +84,27 @@ def test_mahalanobis_of_many_factors_is_each_factors_own(is3d):
         np.testing.assert_allclose(innovations[n], b @ np.linalg.solve(S, b), rtol=1e-9)
 
 
+@pytest.mark.parametrize("is3d", [False, True])
+def test_mahalanobis_of_factors_outside_the_graph_takes_their_joint_covariance(is3d):
+    graph, values = _loop_graph(is3d, poses=60, loops=5)
+    candidates, _ = _loop_graph(is3d, poses=60, loops=40, seed=1)  # loops the graph does not hold
+    factors = [candidates.at(i) for i in range(60, candidates.size())]
+    covariances = FactorCovariances(graph, values)
+    marginals = gtsam.Marginals(graph, values)
+    innovations = covariances.mahalanobis(factors, values, 0.5, 2.0)
+    off_pattern = 0
+    for n, factor in enumerate(factors):
+        A, b = factor.linearize(values).jacobian()
+        joint = marginals.jointMarginalCovariance(gtsam.KeyVector(list(factor.keys()))).fullMatrix()
+        expected = b @ np.linalg.solve(0.5 * np.eye(len(b)) + 2.0 * A @ joint @ A.T, b)
+        np.testing.assert_allclose(innovations[n], expected, rtol=1e-8)
+        try:
+            covariances.joint(list(factor.keys()))
+        except KeyError:
+            off_pattern += 1
+    assert off_pattern > 10  # most of them join poses that no factor and no elimination step joined
+
+
 def test_pair_off_the_pattern_is_refused():
     graph, values = _loop_graph(False, poses=10, loops=0)  # a chain: eliminating it joins only neighbours
     covariances = FactorCovariances(graph, values)

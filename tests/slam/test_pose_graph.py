@@ -392,7 +392,9 @@ def test_estimated_noise_scale_keeps_real_loops_that_share_a_small_bias():
     without_biased = every.copy()
     without_biased[biased] = 0.0
     first = refined(graph, initial, every)
-    assert not _scaled_run_wins(graph, first, every, refined(graph, first, without_biased), without_biased, known)
+    thresholds = np.full(graph.size() - len(known), chi2.ppf(0.99, 6))
+    scaled = refined(graph, first, without_biased)
+    assert not _scaled_run_wins(graph, first, every, scaled, without_biased, known, thresholds)
     _, weights = robust_optimize(graph, initial, known, GraphConfig(robust="gnc_tls", noise_scale="estimated"))
     assert np.all(weights >= 0.5)
 
@@ -404,11 +406,34 @@ def test_the_scaled_result_wins_only_when_the_loops_it_dropped_were_bending_the_
     without_wrong = every.copy()
     without_wrong[wrong] = 0.0
     clean = refined(graph, initial, without_wrong)
-    assert _scaled_run_wins(graph, with_wrong, every, clean, without_wrong, known)  # parking-garage's case
+    thresholds = np.full(graph.size() - len(known), chi2.ppf(0.99, 6))
+    assert _scaled_run_wins(graph, with_wrong, every, clean, without_wrong, known, thresholds)  # parking-garage's case
     tail = [len(known) + n for n in range(0, 60, 10)]
     without_tail = without_wrong.copy()
     without_tail[tail] = 0.0  # real loops with 5x the noise: dropping them changes little (sphere2500's case)
-    assert not _scaled_run_wins(graph, clean, without_wrong, refined(graph, clean, without_tail), without_tail, known)
+    scaled = refined(graph, clean, without_tail)
+    assert not _scaled_run_wins(graph, clean, without_wrong, scaled, without_tail, known, thresholds)
+
+
+def test_a_scaled_result_that_only_adds_loops_wins_when_each_lies_within_its_threshold():
+    """The first run turned the heavy tail of the real loops away; the scaled run gives them back (parking-garage's
+    case), or gives back a wrong loop that bends the graph to fit (smallGrid3D's)."""
+    graph, initial, known, wrong, _ = _loose_graph(tail=5.0)
+    every = np.ones(graph.size())
+    tail = [len(known) + n for n in range(0, 60, 10)]
+    real = every.copy()
+    real[wrong] = 0.0
+    without_tail = real.copy()
+    without_tail[tail] = 0.0
+    first = refined(graph, initial, without_tail)
+    thresholds = np.full(graph.size() - len(known), 0.01 * chi2.ppf(0.99, 6))  # the tail's errors lie within
+    assert _scaled_run_wins(graph, first, without_tail, refined(graph, first, real), real, known, thresholds)
+    with_wrong = without_tail.copy()
+    with_wrong[wrong[0]] = 1.0
+    bent = refined(graph, first, with_wrong)
+    assert 2.0 * graph.at(wrong[0]).error(bent) > thresholds[0]  # bent towards it, but not within
+    assert not _scaled_run_wins(graph, first, without_tail, bent, with_wrong, known, thresholds)
+    assert not _scaled_run_wins(graph, first, without_tail, first, without_tail, known, thresholds)  # adds none
 
 
 def _stadium_lap(step: float = 5.0, straight: float = 80.0, radius: float = 12.0) -> list[np.ndarray]:

@@ -122,6 +122,7 @@ def test_the_reference_starts_from_the_chordal_relaxation_where_the_file_holds_i
     assert details["start"] == "chordal" and elapsed == details["time_chordal_s"]
     assert ref.cost == details["cost_chordal"] < 0.01 * details["cost_file"]  # LM from identity: a local minimum
     assert ref.variance_factor < 1.0  # the measurements carry half the written noise
+    assert details["start_spread"] > 0.01  # the other start's solution: a local minimum elsewhere
 
 
 def test_injected_loops_are_seeded_and_skip_neighbours(data):
