@@ -136,8 +136,8 @@ class FactorCovariances:
         whitened Jacobian and S = `measurement_scale` I + `variable_scale` A Sigma A^T, Sigma its variables' joint
         covariance (`correlated`) or their marginal blocks alone (cross-covariances taken as zero). Batched over
         the factors of one shape: the same as `projected` factor by factor. Factors whose variables the graph
-        does not join (loop candidates) need not be in it: their A Sigma A^T comes from forward substitutions
-        (`_solved_projections`) where Sigma is off the pattern."""
+        does not join (loop candidates) need not be in it: where Sigma is off the pattern, their A Sigma A^T comes
+        from forward substitutions with the factor (`_forward_projections`)."""
         out = np.empty(len(factors))
         groups: dict[tuple, tuple[list[int], list[np.ndarray], list[np.ndarray], list[np.ndarray]]] = {}
         for n, factor in enumerate(factors):
@@ -161,18 +161,12 @@ class FactorCovariances:
             projected = np.empty((len(A), m, m))
             projected[~off] = A[~off] @ sigma[~off] @ np.swapaxes(A[~off], 1, 2)
             if off.any():
-                projected[off] = self._solved_projections(A[off], stacked[off])
+                projected[off] = _forward_projections(
+                    self._indptr, self._indices, self._l_values, self._d, self._position[stacked[off]], A[off]
+                )
             S = measurement_scale * np.eye(m) + variable_scale * projected
             out[positions] = np.einsum("nm,nm->n", b, np.linalg.solve(S, b[:, :, None])[:, :, 0])
         return out
-
-    def _solved_projections(self, A: np.ndarray, columns: np.ndarray) -> np.ndarray:
-        """(F, m, m) A Sigma A^T of F factors, A (F, m, k) their whitened Jacobians on the variable `columns`
-        (F, k): with H = P^T L D L^T P, A Sigma A^T = Y^T D^-1 Y, Y = L^-1 P G and G the Jacobian's rows laid out on
-        all variables (`_forward_projections`)."""
-        return _forward_projections(
-            self._indptr, self._indices, self._l_values, self._d, self._position[columns], np.ascontiguousarray(A)
-        )
 
     def _gathered(self, rows: np.ndarray, cols: np.ndarray, what: str) -> np.ndarray:
         """The covariance entries at variable columns `rows` x `cols`; KeyError naming `what` off the pattern."""
@@ -218,7 +212,8 @@ def _forward_projections(
     """(F, m, m) Y^T D^-1 Y per factor, Y = L^-1 G (L unit lower triangular, CSC with sorted rows and the diagonal
     first; D its diagonal), G (n, m) holding the factor's A (F, m, k) transposed at its `rows` (F, k) of L. The
     entries of L^-1 g lie on the paths up the elimination tree (each column's parent: its first row below the
-    diagonal) from g's rows: the substitution visits those columns alone, in increasing order."""
+    diagonal) from g's rows: the substitution visits those columns alone, in increasing order. With the information
+    matrix H = P^T L D L^T P and `rows` the factor's variable columns permuted by P, this is A H^-1 A^T."""
     n = len(d)
     count, m, k = A.shape
     out = np.empty((count, m, m))
