@@ -99,10 +99,12 @@ def test_quick_run_writes_outputs_and_gnc_rejects_the_injected_loops(data, tmp_p
         if row["method"] == "gnc_tls":
             assert (row["precision"], row["recall"], row["real_rejected"]) == ("1", "1", "0"), row
             assert row["within_1pct"] == "1" and float(row["pose_rel"]) < 1e-4, row
+            assert abs(float(row["tls_rel"])) < 1e-6, row  # the clean optimum's loops: its TLS cost
         if row["method"] == "gnc_gm":  # soft weights: every injected loop below 0.5, the poses close
             assert row["recall"] == "1" and float(row["pose_rel"]) < 0.01, row
     plain = [row for row in rows if row["method"] == "lm" and row["rate_pct"] == "50"]
     assert float(plain[0]["trans_rmse_m"]) > 0.1  # the injected loops do hurt least squares
+    assert float(plain[0]["tls_rel"]) > 0.1  # and its TLS cost
     assert (out / "reference.csv").is_file() and (out / "settings.json").is_file()
     for plot in ("posegraph.png", "posegraph_time.png"):
         assert (out / plot).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
