@@ -85,7 +85,8 @@ def robust_optimize(
     than their covariances say, every threshold grows by how much (`_seed_scales`); when the loops the first run
     kept fit better than their covariances say (`variance_factor` below 1), a second run takes the thresholds
     times that factor (TLS from the first run's loops, or GNC from `initial`), loops it rejected that fit as
-    well as the heavy tail of those it kept come back (`readmitted`), and its result replaces the first when
+    well as the heavy tail of those it kept come back, beyond the first run's thresholds only where their
+    innovation is within them (`readmitted`), and its result replaces the first when
     it keeps more than `MIN_KEPT_SHARE` of the loops the first kept and fits them clearly better
     (`_scaled_run_wins`). Graphs whose loops differ in dimension keep the first run.
     none: plain Levenberg-Marquardt, every weight 1.
@@ -153,7 +154,7 @@ def _decided(
                 scaled = _truncated(graph, values, weights, known_inliers, thresholds * scale, SCALED_TLS_ROUNDS)
             else:
                 scaled = _gnc(graph, initial, known_inliers, config, 0.5 * thresholds[0] * scale)
-            scaled_weights = readmitted(graph, *scaled, known_inliers)
+            scaled_weights = readmitted(graph, *scaled, known_inliers, thresholds)
             if not np.array_equal(scaled_weights, weights):  # the same loops: the first run's solution
                 scaled = refined(graph, scaled[0], scaled_weights), scaled_weights
                 if _scaled_run_wins(graph, values, weights, *scaled, known_inliers, thresholds):
@@ -529,23 +530,59 @@ def readmitted(
     values: gtsam.Values,
     weights: np.ndarray,
     known_inliers: list[int],
+    thresholds: np.ndarray | None = None,
 ) -> np.ndarray:
     """`weights` with weight 1 for every loop whose squared whitened error at `values` lies within
     `READMIT_SIGMAS` robust standard deviations (1.4826 x median absolute deviation, in log10) above the
-    median of the kept loops'; the others keep their weight.
+    median of the kept loops'; the others keep their weight. With `thresholds` (per loop, in the order of
+    `_loop_indices`), a loop beyond its threshold at `values` comes back only when its innovation is within it
+    (`_innovation_within`): to first order, TLS solved with it would keep it.
 
     A threshold at a chi-square quantile of the estimated scale cuts real loops when their errors are
     heavy-tailed; in log space that tail stays within a few robust sigmas of the kept loops' median, and wrong
-    loops lie far beyond it.
+    loops lie far beyond it. Where the kept loops' errors spread over decades that tail takes in nearly every
+    loop (SE-Sync's sphere_bignoise with its covariances rescaled to its noise: every injected loop, and solving
+    with them took minutes); of those beyond their thresholds the innovation keeps the real ones apart.
     """
     loops = _loop_indices(graph.size(), known_inliers)
     errors = np.array([2.0 * graph.at(int(i)).error(values) for i in loops])
     kept = weights[loops] >= 0.5
     if kept.sum() < MIN_LOOPS_FOR_SCALE:
         return weights
+    within = errors <= _tail_limit(errors[kept])
+    if thresholds is not None:
+        beyond = np.flatnonzero(within & ~kept & (errors > thresholds))
+        within[beyond] = False
+        if len(beyond):
+            within[beyond[_innovation_within(graph, values, weights, loops[beyond], thresholds[beyond])]] = True
     out = weights.copy()
-    out[loops[errors <= _tail_limit(errors[kept])]] = 1.0
+    out[loops[within]] = 1.0
     return out
+
+
+def _innovation_within(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    weights: np.ndarray,
+    indices: np.ndarray,
+    limits: np.ndarray,
+) -> np.ndarray:
+    """(len(indices),) bool: whether the squared whitened innovation of each factor at `indices` against the
+    factors of weight >= 0.5 at `values` lies within its limit: its error whitened by its covariance plus its
+    poses' joint one (`FactorCovariances.mahalanobis`): to first order, what solving with it adds to the least
+    squares cost, which TLS pays rather than the limit. As in the innovation test (`_admitted`), the joint covariance is taken only where the poses' marginals
+    alone pass; none passes where the kept factors leave a pose free even under `ADMISSION_INFORMATION_FLOOR`."""
+    for floor in (0.0, ADMISSION_INFORMATION_FLOOR):
+        try:
+            covariances = FactorCovariances(_kept(graph, weights), values, floor=floor)
+        except ValueError:
+            continue
+        factors = [graph.at(int(i)) for i in indices]
+        within = covariances.mahalanobis(factors, values, correlated=False) <= limits
+        undecided = np.flatnonzero(within)
+        within[undecided] = covariances.mahalanobis([factors[n] for n in undecided], values) <= limits[undecided]
+        return within
+    return np.zeros(len(indices), dtype=bool)
 
 
 def _scaled_run_wins(

@@ -10,6 +10,7 @@ from sandro_core import SandroConfig, register
 from sandro_core.geometry import transform_points
 from sandro_slam import robust_backend
 from sandro_slam.config import GraphConfig
+from sandro_slam.covariance import FactorCovariances
 from sandro_slam.factors import between_factor, odometry_covariance
 from sandro_slam.pose_graph import PoseGraph
 from sandro_slam.robust_backend import (
@@ -329,6 +330,27 @@ def test_readmitted_gives_back_loops_within_the_kept_loops_spread_only():
     out = readmitted(graph, values, weights, known)
     assert np.all(out[tail] == 1.0) and np.all(out[wrong] == 0.0)
     assert np.array_equal(readmitted(graph, values, weights, list(range(graph.size() - 8))), weights)  # too few
+
+
+def test_readmitted_gives_back_a_loop_beyond_its_threshold_only_where_its_innovation_is_within():
+    graph, initial, known, wrong, _ = _loose_graph(tail=5.0)
+    weights = np.ones(graph.size())
+    weights[wrong] = 0.0
+    values = refined(graph, initial, weights)
+    tail = np.array([len(known) + n for n in range(0, 60, 10)])
+    weights[tail] = 0.0
+    kept = gtsam.NonlinearFactorGraph()
+    for i in np.flatnonzero(weights >= 0.5):
+        kept.add(graph.at(int(i)))
+    plain = np.array([2.0 * graph.at(int(i)).error(values) for i in tail])
+    innovation = FactorCovariances(kept, values).mahalanobis([graph.at(int(i)) for i in tail], values)
+    assert np.all(innovation < plain)  # the poses' covariance only lowers it
+    thresholds = np.full(graph.size() - len(known), np.inf)
+    fits, misfits = tail[:3], tail[3:]
+    thresholds[fits - len(known)] = 0.5 * (innovation[:3] + plain[:3])  # beyond, but within once solved with
+    thresholds[misfits - len(known)] = 0.5 * innovation[3:]
+    out = readmitted(graph, values, weights, known, thresholds)
+    assert np.all(out[fits] == 1.0) and np.all(out[misfits] == 0.0) and np.all(out[wrong] == 0.0)
 
 
 def test_variance_factor_of_a_clean_graph_is_its_noise_ratio_squared():
