@@ -570,8 +570,9 @@ def _innovation_within(
     """(len(indices),) bool: whether the squared whitened innovation of each factor at `indices` against the
     factors of weight >= 0.5 at `values` lies within its limit: its error whitened by its covariance plus its
     poses' joint one (`FactorCovariances.mahalanobis`): to first order, what solving with it adds to the least
-    squares cost, which TLS pays rather than the limit. As in the innovation test (`_admitted`), the joint covariance is taken only where the poses' marginals
-    alone pass; none passes where the kept factors leave a pose free even under `ADMISSION_INFORMATION_FLOOR`."""
+    squares cost, which TLS pays rather than the limit. As in the innovation test (`_admitted`), the joint
+    covariance is taken only where the poses' marginals alone pass; none passes where the kept factors leave a pose
+    free even under `ADMISSION_INFORMATION_FLOOR`."""
     for floor in (0.0, ADMISSION_INFORMATION_FLOOR):
         try:
             covariances = FactorCovariances(_kept(graph, weights), values, floor=floor)
