@@ -264,17 +264,19 @@ def _lower_cost(
     known_inliers: list[int],
     thresholds: np.ndarray,
 ) -> tuple[gtsam.Values, np.ndarray]:
-    """Of two (values, weights) solutions, the one of lower TLS cost: the known inliers' squared whitened errors
-    plus every loop's, truncated at its threshold."""
+    """Of two (values, weights) solutions, the one of lower TLS cost (`tls_cost`)."""
+    lower = tls_cost(graph, second[0], known_inliers, thresholds) < tls_cost(graph, first[0], known_inliers, thresholds)
+    return second if lower else first
 
-    loops = _loop_indices(graph.size(), known_inliers)
 
-    def cost(values: gtsam.Values) -> float:
-        squared = np.array([2.0 * graph.at(int(i)).error(values) for i in loops])
-        known = sum(2.0 * graph.at(i).error(values) for i in known_inliers)
-        return known + float(np.minimum(squared, thresholds).sum())
-
-    return second if cost(second[0]) < cost(first[0]) else first
+def tls_cost(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, known_inliers: list[int], thresholds: np.ndarray
+) -> float:
+    """The truncated least squares cost of `graph` at `values`: the known inliers' squared whitened errors plus
+    every loop's, truncated at its threshold (`thresholds`, per loop, in the order of `_loop_indices`)."""
+    squared = np.array([2.0 * graph.at(int(i)).error(values) for i in _loop_indices(graph.size(), known_inliers)])
+    known = sum(2.0 * graph.at(i).error(values) for i in known_inliers)
+    return known + float(np.minimum(squared, thresholds).sum())
 
 
 def _seeded(
@@ -343,9 +345,7 @@ def _admitted(
     (at most 1, so covariances not to scale admit no more). The poses' covariance is their joint one, with
     their cross-covariance: far from the graph's priors each pose alone is uncertain while the two move together,
     and taken as uncorrelated their marginals let loops in that contradict the odometry between them (SE-Sync's
-    ais2klinik at 30 % outliers: 18 injected loops admitted, none with the joint covariance). The joint
-    covariance, from solves, is taken for the loops that the marginals alone admit: the others it would refuse
-    too (on the SE-Sync graphs the joint covariance gives the larger innovation for 98-99.9 % of the loops).
+    ais2klinik at 30 % outliers: 18 injected loops admitted, none with the joint covariance; `_innovation_within`).
     A loop within its threshold by its own covariance alone passes without them (the poses' covariance only
     lowers the innovation). What the test lets in, `_truncated` judges again.
     Returns the solution and the weights of the seed and admitted loops (1), the candidates of `_truncated`."""
@@ -353,23 +353,18 @@ def _admitted(
     outside = weights[loops] < 0.5
     if not outside.any():
         return values, weights
-    try:
-        at_solution = covariances(weights, values)
-    except ValueError:  # covariances that leave directions free (roll and pitch of planar odometry, chains held
-        try:  # by weak priors): bounded by a weak prior on every pose
-            at_solution = covariances(weights, values, floor=ADMISSION_INFORMATION_FLOOR)
-        except ValueError:  # poses that only loops outside the seed hold: no covariance to test against
-            return values, weights
+    at_solution = _floored(covariances, weights, values)
+    if at_solution is None:  # poses that only loops outside the seed hold: no covariance to test against
+        return values, weights
     indices, limits = loops[outside], thresholds[outside]
     factors = [graph.at(int(i)) for i in indices]
     # within the limit by its own covariance alone: the poses' covariance only lowers the innovation
     plain = np.array([2.0 * factor.error(values) for factor in factors]) <= scales[0] * limits
-    marginal = at_solution.mahalanobis(factors, values, *scales, correlated=False)
-    undecided = np.flatnonzero(~plain & (marginal <= limits))
-    joint = at_solution.mahalanobis([factors[n] for n in undecided], values, *scales)
+    tested = np.flatnonzero(~plain)
+    passed = _innovation_within(at_solution, [factors[n] for n in tested], values, limits[tested], scales)
     admitted = weights.copy()
     admitted[indices[plain]] = 1.0
-    admitted[indices[undecided[joint <= limits[undecided]]]] = 1.0
+    admitted[indices[tested[passed]]] = 1.0
     if np.array_equal(admitted, weights):
         return values, weights
     return refined(graph, values, admitted, relative_tol=SEED_RELATIVE_TOL), admitted
@@ -553,37 +548,44 @@ def readmitted(
     if thresholds is not None:
         beyond = np.flatnonzero(within & ~kept & (errors > thresholds))
         within[beyond] = False
-        if len(beyond):
-            within[beyond[_innovation_within(graph, values, weights, loops[beyond], thresholds[beyond])]] = True
+        at_solution = _floored(_Covariances(graph), weights, values) if len(beyond) else None
+        if at_solution is not None:
+            factors = [graph.at(int(i)) for i in loops[beyond]]
+            within[beyond[_innovation_within(at_solution, factors, values, thresholds[beyond])]] = True
     out = weights.copy()
     out[loops[within]] = 1.0
     return out
 
 
-def _innovation_within(
-    graph: gtsam.NonlinearFactorGraph,
-    values: gtsam.Values,
-    weights: np.ndarray,
-    indices: np.ndarray,
-    limits: np.ndarray,
-) -> np.ndarray:
-    """(len(indices),) bool: whether the squared whitened innovation of each factor at `indices` against the
-    factors of weight >= 0.5 at `values` lies within its limit: its error whitened by its covariance plus its
-    poses' joint one (`FactorCovariances.mahalanobis`): to first order, what solving with it adds to the least
-    squares cost, which TLS pays rather than the limit. As in the innovation test (`_admitted`), the joint
-    covariance is taken only where the poses' marginals alone pass; none passes where the kept factors leave a pose
-    free even under `ADMISSION_INFORMATION_FLOOR`."""
+def _floored(covariances: _Covariances, weights: np.ndarray, values: gtsam.Values) -> FactorCovariances | None:
+    """The covariances of the factors of weight >= 0.5 at `values`; where they leave directions free (roll and
+    pitch of planar odometry, chains held by weak priors), bounded by a weak prior on every pose
+    (`ADMISSION_INFORMATION_FLOOR`); None where even then a pose is free."""
     for floor in (0.0, ADMISSION_INFORMATION_FLOOR):
         try:
-            covariances = FactorCovariances(_kept(graph, weights), values, floor=floor)
+            return covariances(weights, values, floor=floor)
         except ValueError:
             continue
-        factors = [graph.at(int(i)) for i in indices]
-        within = covariances.mahalanobis(factors, values, correlated=False) <= limits
-        undecided = np.flatnonzero(within)
-        within[undecided] = covariances.mahalanobis([factors[n] for n in undecided], values) <= limits[undecided]
-        return within
-    return np.zeros(len(indices), dtype=bool)
+    return None
+
+
+def _innovation_within(
+    at_solution: FactorCovariances,
+    factors: list[gtsam.NonlinearFactor],
+    values: gtsam.Values,
+    limits: np.ndarray,
+    scales: tuple[float, float] = (1.0, 1.0),
+) -> np.ndarray:
+    """(len(factors),) bool: whether each factor's squared whitened innovation at `values` lies within its limit:
+    its error whitened by its covariance (`scales[0]` times) plus its poses' joint covariance of `at_solution`
+    (`scales[1]` times; `FactorCovariances.mahalanobis`): to first order, what solving with it adds to the least
+    squares cost, which TLS pays rather than the limit. The joint covariance, from solves, is taken only where
+    the poses' marginals alone pass: the others it would refuse too (on the SE-Sync graphs the joint covariance
+    gives the larger innovation for 98-99.9 % of the loops)."""
+    within = at_solution.mahalanobis(factors, values, *scales, correlated=False) <= limits
+    undecided = np.flatnonzero(within)
+    within[undecided] = at_solution.mahalanobis([factors[n] for n in undecided], values, *scales) <= limits[undecided]
+    return within
 
 
 def _scaled_run_wins(

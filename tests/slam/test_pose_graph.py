@@ -16,6 +16,7 @@ from sandro_slam.pose_graph import PoseGraph
 from sandro_slam.robust_backend import (
     _gnc,
     _grown,
+    _kept,
     _loop_indices,
     _pruned,
     _scaled_run_wins,
@@ -339,11 +340,8 @@ def test_readmitted_gives_back_a_loop_beyond_its_threshold_only_where_its_innova
     values = refined(graph, initial, weights)
     tail = np.array([len(known) + n for n in range(0, 60, 10)])
     weights[tail] = 0.0
-    kept = gtsam.NonlinearFactorGraph()
-    for i in np.flatnonzero(weights >= 0.5):
-        kept.add(graph.at(int(i)))
     plain = np.array([2.0 * graph.at(int(i)).error(values) for i in tail])
-    innovation = FactorCovariances(kept, values).mahalanobis([graph.at(int(i)) for i in tail], values)
+    innovation = FactorCovariances(_kept(graph, weights), values).mahalanobis([graph.at(int(i)) for i in tail], values)
     assert np.all(innovation < plain)  # the poses' covariance only lowers it
     thresholds = np.full(graph.size() - len(known), np.inf)
     fits, misfits = tail[:3], tail[3:]
