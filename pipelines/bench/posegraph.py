@@ -34,16 +34,23 @@ further chain gets a weak prior on its first pose; a graph without such edges is
         within_1pct: pose_rel <= 1 % and cost_rel <= 1 %. time_s and
         time_x_ref: the run's time and its ratio to the reference's (the back end's compiled kernels are loaded
         before the first run: `load_kernels`).
+    profile (--profile): each run under cProfile (its time_s then includes the profiler's overhead), and per run
+        where its time went: every function of sandro_slam, and gtsam's nonlinear solves (`gtsam.optimize`: one
+        call per Levenberg-Marquardt or GNC run), with its calls and cumulative time, those at `PROFILE_SHARE` of
+        the run or more.
 Writes into --out: results.csv (one row per graph, info scale, rate, initial values and method; rewritten after
 every run, so a long run can be read while it goes), reference.csv, posegraph.png (translation RMSE per method
-and rate, one panel per graph), posegraph_time.png (time against graph size) and settings.json.
+and rate, one panel per graph), posegraph_time.png (time against graph size), settings.json and, with --profile,
+profile.csv.
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
 import math
+import pstats
 import time
 import zlib
 from dataclasses import asdict, dataclass, replace
@@ -80,6 +87,7 @@ OUTLIER_MAX_ANGLE_DEG = 30.0
 QUICK_POSES = 200  # --quick keeps the first graph's first poses only
 REFERENCE_COST_TOL = 1e-5  # relative cost within which a start of the reference reaches the clean optimum
 TARGET = 0.01  # pose_rel and cost_rel of a robust result within 1 % of the reference
+PROFILE_SHARE = 0.01  # --profile: functions of at least this share of a run's time are listed
 REFERENCE_FIELDS = [
     "graph", "info_scale", "dim", "n_poses", "n_chains", "n_odometry", "n_loops", "cost_clean", "variance_factor",
     "scale_m", "time_s", "start", "cost_file", "time_file_s", "cost_chordal", "time_chordal_s", "start_spread",
@@ -88,6 +96,9 @@ RESULT_FIELDS = [
     "graph", "info_scale", "rate_pct", "n_outliers", "init", "method", "trans_rmse_m", "trans_max_m", "rot_rmse_deg",
     "pose_rel", "cost", "cost_rel", "precision", "recall", "real_rejected", "tls_rel", "time_s", "time_x_ref",
     "within_1pct", "error",
+]  # fmt: skip
+PROFILE_FIELDS = [
+    "graph", "info_scale", "rate_pct", "n_outliers", "init", "method", "function", "calls", "time_s", "share",
 ]  # fmt: skip
 
 
@@ -371,11 +382,16 @@ def run_one(
     graph: gtsam.NonlinearFactorGraph,
     initial: gtsam.Values,
     known: list[int],
+    profiler: cProfile.Profile | None = None,
 ) -> dict[str, object]:
-    """One optimisation of the corrupted graph: its metrics and time [s]; an exception becomes `error`."""
+    """One optimisation of the corrupted graph: its metrics and time [s]; an exception becomes `error`. With
+    `profiler`, the optimisation runs under it."""
     start = time.perf_counter()
     try:
-        values, weights = optimize(method, graph, initial, known)
+        if profiler is None:
+            values, weights = optimize(method, graph, initial, known)
+        else:
+            values, weights = profiler.runcall(optimize, method, graph, initial, known)
     except RuntimeError as exc:
         return {"time_s": time.perf_counter() - start, "within_1pct": 0, "error": f"{type(exc).__name__}: {exc}"}
     row: dict[str, object] = {"time_s": time.perf_counter() - start, **compare(values, problem, ref)}
@@ -390,6 +406,23 @@ def run_one(
     return row
 
 
+def profile_rows(profiler: cProfile.Profile, total: float) -> list[dict[str, object]]:
+    """Where a profiled run of `total` seconds went: per function of sandro_slam (file:line(name)) and gtsam's
+    nonlinear solves (`gtsam.optimize`) of at least `PROFILE_SHARE` of it, its calls and cumulative time [s], the
+    longest first."""
+    rows = []
+    for (path, line, name), (_, calls, _, cumulative, _) in pstats.Stats(profiler).stats.items():
+        if "/sandro_slam/" in path:
+            function = f"{Path(path).name}:{line}({name})"  # pstats' notation
+        elif name == "<built-in method gtsam.gtsam.optimize>":
+            function = "gtsam.optimize"
+        else:
+            continue
+        if cumulative >= PROFILE_SHARE * total:
+            rows.append({"function": function, "calls": calls, "time_s": cumulative, "share": cumulative / total})
+    return sorted(rows, key=lambda row: -row["time_s"])
+
+
 @dataclass(frozen=True)
 class Settings:
     """The resolved options of one run."""
@@ -402,6 +435,7 @@ class Settings:
     info_scales: list[str]  # positive numbers or 'auto'
     max_poses: int | None
     seed: int
+    profile: bool
     out: str
 
 
@@ -418,6 +452,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of the injected outliers (0)")
     parser.add_argument("--quick", action="store_true", help=f"first graph only, its first {QUICK_POSES} poses")
+    parser.add_argument(
+        "--profile", action="store_true", help="profile every run: where its time went, into profile.csv"
+    )
 
 
 def _rates(text: str) -> list[int]:
@@ -458,6 +495,7 @@ def resolve(args: argparse.Namespace) -> Settings:
         info_scales=_info_scales(args.info_scale),
         max_poses=QUICK_POSES if args.quick else None,
         seed=args.seed,
+        profile=args.profile,
         out=str(args.out if args.out is not None else default_out_dir("bench_posegraph")),
     )
 
@@ -586,7 +624,7 @@ def run(args: argparse.Namespace) -> int:
     (out / "settings.json").write_text(json.dumps(asdict(settings), indent=2) + "\n")
 
     load_kernels()
-    references, rows = [], []
+    references, rows, profiles = [], [], []
     runs = len(settings.info_scales) * len(settings.rates) * len(settings.inits) * len(settings.methods)
     with tqdm(total=len(problems) * runs, desc="posegraph", unit="run", dynamic_ncols=True) as progress:
         for file_problem in problems:
@@ -613,9 +651,14 @@ def run(args: argparse.Namespace) -> int:
                                 "n_outliers": graph.size() - len(known) - len(problem.loops),
                                 "init": init, "method": method,
                             }  # fmt: skip
-                            row = {**labels, **run_one(problem, ref, method, graph, initials[init], known)}
+                            profiler = cProfile.Profile() if settings.profile else None
+                            result = run_one(problem, ref, method, graph, initials[init], known, profiler)
+                            row = {**labels, **result}
                             rows.append({**row, "time_x_ref": row["time_s"] / elapsed})
                             write_csv(out / "results.csv", rows, RESULT_FIELDS)  # so far: a long run can be read
+                            if profiler is not None:
+                                profiles += [{**labels, **p} for p in profile_rows(profiler, row["time_s"])]
+                                write_csv(out / "profile.csv", profiles, PROFILE_FIELDS)
                             progress.update()
 
     plot(rows, references, out / "posegraph.png")

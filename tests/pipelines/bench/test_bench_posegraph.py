@@ -112,6 +112,24 @@ def test_quick_run_writes_outputs_and_gnc_rejects_the_injected_loops(data, tmp_p
     assert graph in capsys.readouterr().out
 
 
+def test_profile_lists_where_each_run_went(data, tmp_path):
+    out = tmp_path / "bench"
+    code = main(["posegraph", "--quick", "--data", str(data), "--graphs", "circle2d", "--rates", "10,50",
+                 "--methods", "gnc_tls,lm", "--profile", "--out", str(out)])  # fmt: skip
+    assert code == 0
+    with (out / "profile.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    for rate in ("10", "50"):
+        mine = {row["function"]: row for row in rows if row["rate_pct"] == rate and row["method"] == "gnc_tls"}
+        top = next(row for function, row in mine.items() if function.endswith("(robust_optimize)"))
+        assert top["function"].startswith("robust_backend.py:") and top["calls"] == "1"
+        assert 0.5 < float(top["share"]) <= 1.0
+        assert int(mine["gtsam.optimize"]["calls"]) >= 1  # the back end's solves
+        assert all(float(row["time_s"]) <= float(top["time_s"]) for row in mine.values())
+    plain = [row for row in rows if row["method"] == "lm"]
+    assert plain and all(row["function"] == "gtsam.optimize" for row in plain)
+
+
 @pytest.mark.parametrize("dim", [3, 2])
 def test_the_reference_starts_from_the_chordal_relaxation_where_the_file_holds_identity_vertices(tmp_path, dim):
     path = tmp_path / "identity.g2o"
