@@ -86,9 +86,10 @@ def robust_optimize(
     kept fit better than their covariances say (`variance_factor` below 1), a second run takes the thresholds
     times that factor (TLS from the first run's loops, or GNC from `initial`), loops it rejected that fit as
     well as the heavy tail of those it kept come back, beyond the first run's thresholds only where their
-    innovation is within them (`readmitted`), and its result replaces the first when
-    it keeps more than `MIN_KEPT_SHARE` of the loops the first kept and fits them clearly better
-    (`_scaled_run_wins`). Graphs whose loops differ in dimension keep the first run.
+    innovation is within them (`readmitted`), and its result replaces the first when it keeps more than
+    `MIN_KEPT_SHARE` of the loops the first kept and fits them clearly better, or keeps more loops than the
+    first, those it adds within their thresholds (`_scaled_run_wins`). Graphs whose loops differ in dimension
+    keep the first run.
     none: plain Levenberg-Marquardt, every weight 1.
     The loops are decided on the graph with its runs of plain poses condensed (`chain_reduction.condensed`; the
     seeds are found on the whole graph, where the odometry's steps count the neighbourhood), and the whole graph is
@@ -602,16 +603,18 @@ def _scaled_run_wins(
     threshold that rejects many of the first run's loops cuts their own heavy tail, or real loops with a small
     shared bias. And the loops both runs kept must fit at least `MIN_FIT_GAIN` times better (median squared
     error) without the ones it dropped: those were bending the graph, not just the tail of the real loops.
-    A result that keeps every loop the first run kept and more wins as well when each loop it adds lies within its
-    threshold (of `thresholds`, per loop) at its solution: TLS would keep them there. They fit like the kept
-    loops (`readmitted`), and the first run's innovation test, whose covariances come from the seed loops' fit,
-    turned them away as the heavy tail of the real loops' errors.
+    A result that keeps more loops than the first run wins as well when each loop it adds lies within its threshold
+    (of `thresholds`, per loop) at its solution: TLS would keep them there. Where it keeps every loop the first
+    run kept, those it adds fit like the kept loops (`readmitted`), and the first run's innovation test, whose
+    covariances come from the seed loops' fit, turned them away as the heavy tail of the real loops' errors.
+    Where it keeps others in place of some, the first run ended in another minimum: at tighter thresholds more
+    loops fit (GNC from the initial values, on a graph of exact loops a third of whose loops are wrong).
     """
     loops = _loop_indices(len(weights), known_inliers)
     kept = loops[weights[loops] >= 0.5]
     both = kept[scaled_weights[kept] >= 0.5]
-    if len(both) == len(kept):
-        added = (scaled_weights[loops] >= 0.5) & (weights[loops] < 0.5)
+    added = (scaled_weights[loops] >= 0.5) & (weights[loops] < 0.5)
+    if len(both) == len(kept) or added.sum() > len(kept) - len(both):  # every loop of the first run, or more loops
         errors = np.array([2.0 * graph.at(int(i)).error(scaled_values) for i in loops[added]])
         return bool(added.any() and (errors <= thresholds[added]).all())
     if len(both) <= MIN_KEPT_SHARE * len(kept):

@@ -456,6 +456,27 @@ def test_a_scaled_result_that_only_adds_loops_wins_when_each_lies_within_its_thr
     assert not _scaled_run_wins(graph, first, without_tail, first, without_tail, known, thresholds)  # adds none
 
 
+def test_a_scaled_result_that_keeps_more_loops_in_place_of_the_first_runs_wins():
+    """GNC ended in another minimum (gtsam's victoriaPark with a third of its loops wrong: the first run kept the
+    wrong ones and lost real ones); the scaled run keeps more loops at its tighter thresholds, each within its
+    threshold: it wins, though it drops a fifth of the loops the first run kept. Swapping loops one for one does not
+    count as more."""
+    graph, initial, known, wrong, _ = _loose_graph()
+    real = np.ones(graph.size())
+    real[wrong] = 0.0
+    loops = np.arange(len(known), graph.size())
+    lost = loops[24:60]  # of the 60 real loops, in factor order before the wrong ones
+    first_weights = np.ones(graph.size())
+    first_weights[lost] = 0.0  # 24 real and the 6 wrong loops kept
+    first = refined(graph, initial, first_weights)
+    thresholds = np.full(len(loops), chi2.ppf(0.99, 6))
+    assert _scaled_run_wins(graph, first, first_weights, refined(graph, initial, real), real, known, thresholds)
+    swapped = real.copy()
+    swapped[lost[6:]] = 0.0  # 24 + 6 real loops: as many as the first run kept
+    one_for_one = refined(graph, initial, swapped)
+    assert not _scaled_run_wins(graph, first, first_weights, one_for_one, swapped, known, thresholds)
+
+
 def _stadium_lap(step: float = 5.0, straight: float = 80.0, radius: float = 12.0) -> list[np.ndarray]:
     """Poses T_world_pose every `step` [m] along a stadium (two straights along x, two half circles), heading
     along it."""

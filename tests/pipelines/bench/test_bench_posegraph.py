@@ -37,18 +37,19 @@ def _g2o_information(diagonal: list[float]) -> str:
     return " ".join(str(diagonal[i] if i == j else 0) for i in range(len(diagonal)) for j in range(i, len(diagonal)))
 
 
-def _noisy(rng: np.random.Generator, pose: gtsam.Pose3) -> gtsam.Pose3:
-    xi = NOISE_SHARE * np.concatenate([rng.normal(scale=SIGMA_R, size=3), rng.normal(scale=SIGMA_T, size=3)])
+def _noisy(rng: np.random.Generator, pose: gtsam.Pose3, share: float = NOISE_SHARE) -> gtsam.Pose3:
+    xi = share * np.concatenate([rng.normal(scale=SIGMA_R, size=3), rng.normal(scale=SIGMA_T, size=3)])
     return pose.compose(gtsam.Pose3.Expmap(xi))
 
 
-def _write_g2o(path: Path, dim: int, seed: int = 0) -> None:
+def _write_g2o(path: Path, dim: int, seed: int = 0, noise_share: float = NOISE_SHARE) -> None:
     """Odometry along two laps plus a loop between every pose of the second lap and the first, with the
-    odometry chain as initial values; 3D (EDGE_SE3:QUAT) or 2D (EDGE_SE2, the circle in the plane)."""
+    odometry chain as initial values; 3D (EDGE_SE3:QUAT) or 2D (EDGE_SE2, the circle in the plane). The
+    measurements' noise is `noise_share` times the stated standard deviations (0: exact)."""
     rng = np.random.default_rng(seed)
     truth = _circle()
     edges = [(i, i + 1) for i in range(len(truth) - 1)] + [(i, i + LAP) for i in range(LAP)]
-    measured = {(a, b): _noisy(rng, truth[a].between(truth[b])) for a, b in edges}
+    measured = {(a, b): _noisy(rng, truth[a].between(truth[b]), noise_share) for a, b in edges}
     chain = [truth[0]]
     for i in range(len(truth) - 1):
         chain.append(chain[-1].compose(measured[(i, i + 1)]))
@@ -110,6 +111,18 @@ def test_quick_run_writes_outputs_and_gnc_rejects_the_injected_loops(data, tmp_p
         assert (out / plot).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert all(float(row["time_x_ref"]) > 0 for row in rows)
     assert graph in capsys.readouterr().out
+
+
+def test_a_graph_of_exact_measurements_has_no_cost_rel_and_is_judged_by_its_poses(tmp_path):
+    data = tmp_path / "graphs"
+    data.mkdir()
+    _write_g2o(data / "exact.g2o", 2, noise_share=0.0)
+    out = tmp_path / "bench"
+    code = main(["posegraph", "--data", str(data), "--rates", "30", "--methods", "gnc_tls,lm", "--out", str(out)])
+    assert code == 0
+    rows = {row["method"]: row for row in _rows(out)}
+    assert rows["gnc_tls"]["cost_rel"] == rows["lm"]["cost_rel"] == "nan"  # relative to a cost of numerically 0
+    assert rows["gnc_tls"]["within_1pct"] == "1" and rows["lm"]["within_1pct"] == "0"
 
 
 def test_profile_lists_where_each_run_went(data, tmp_path):
