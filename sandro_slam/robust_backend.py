@@ -614,7 +614,8 @@ def _scaled_run_wins(
     kept = loops[weights[loops] >= 0.5]
     both = kept[scaled_weights[kept] >= 0.5]
     added = (scaled_weights[loops] >= 0.5) & (weights[loops] < 0.5)
-    if len(both) == len(kept) or added.sum() > len(kept) - len(both):  # every loop of the first run, or more loops
+    dropped = len(kept) - len(both)
+    if dropped == 0 or added.sum() > dropped:
         errors = np.array([2.0 * graph.at(int(i)).error(scaled_values) for i in loops[added]])
         return bool(added.any() and (errors <= thresholds[added]).all())
     if len(both) <= MIN_KEPT_SHARE * len(kept):
