@@ -655,8 +655,7 @@ def run(args: argparse.Namespace) -> int:
                                 "init": init, "method": method,
                             }  # fmt: skip
                             profiler = cProfile.Profile() if settings.profile else None
-                            result = run_one(problem, ref, method, graph, initials[init], known, profiler)
-                            row = {**labels, **result}
+                            row = {**labels, **run_one(problem, ref, method, graph, initials[init], known, profiler)}
                             rows.append({**row, "time_x_ref": row["time_s"] / elapsed})
                             write_csv(out / "results.csv", rows, RESULT_FIELDS)  # so far: a long run can be read
                             if profiler is not None:
