@@ -618,12 +618,12 @@ def run(args: argparse.Namespace) -> int:
     """Run every graph, info scale, rate, init and method; write CSVs, plot and settings into --out; print the
     tables."""
     settings = resolve(args)
+    problems = [load_problem(Path(settings.data) / f"{name}.g2o", settings.max_poses) for name in settings.graphs]
     out = Path(settings.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as error:
         raise ValueError(f"--out {out}: {error}") from None
-    problems = [load_problem(Path(settings.data) / f"{name}.g2o", settings.max_poses) for name in settings.graphs]
     (out / "settings.json").write_text(json.dumps(asdict(settings), indent=2) + "\n")
 
     load_kernels()

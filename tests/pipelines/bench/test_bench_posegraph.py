@@ -192,6 +192,7 @@ def test_a_graph_without_consecutive_edges_is_refused_with_one_line(data, tmp_pa
     assert main(["posegraph", "--data", str(data), "--graphs", "circle3d", "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert "odometry chain" in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert not (tmp_path / "out").exists()  # refused before anything is written
 
 
 @pytest.mark.parametrize(
