@@ -90,7 +90,8 @@ class SimulatedSequence:
         scan stamped at its latest point, every point in the sensor frame at that time, no per-point times; and the
         true T_world_sensor then."""
         end = frame.timestamp + float(frame.times.max())
-        per_point = self.poses_at(frame.timestamp + frame.times)
+        firings, firing_of_point = np.unique(frame.times, return_inverse=True)  # points fire in groups
+        per_point = self.poses_at(frame.timestamp + firings)[firing_of_point]
         world = np.einsum("nij,nj->ni", per_point[:, :3, :3], frame.points) + per_point[:, :3, 3]
         T_world_end = self.poses_at(end)[0]
         return Scan(end, transform_points(np.linalg.inv(T_world_end), world), np.empty(0)), T_world_end
