@@ -232,12 +232,18 @@ def _forward_projections(
                 node = indices[indptr[node] + 1] if indptr[node + 1] - indptr[node] > 1 else -1
         columns = np.sort(path[:length])
         M = np.zeros((m, m))
-        for c in columns:
-            yc = y[c, :].copy()
+        yc = np.empty(m)
+        for c in columns:  # element by element: no temporary arrays in the innermost loops
+            for i in range(m):
+                yc[i] = y[c, i]
+                y[c, i] = 0.0
             for p in range(indptr[c] + 1, indptr[c + 1]):
-                y[indices[p], :] -= l_values[p] * yc
-            M += np.outer(yc, yc) / d[c]
-            y[c, :] = 0.0
+                row = indices[p]
+                for i in range(m):
+                    y[row, i] -= l_values[p] * yc[i]
+            for i in range(m):
+                for j in range(m):
+                    M[i, j] += yc[i] * yc[j] / d[c]
         out[f] = M
     return out
 
