@@ -92,14 +92,19 @@ class LoopRegistrationConfig(StrictModel):
         default_factory=SandroConfig,
         description=f"the solver; its noise_bound None means {REFERENCE_NOISE_BOUND:g} m x scale here",
     )
-    icp_refine: bool = Field(True, description="point-to-plane ICP from the SANDRO transform")
-    icp_max_distance: float | None = scaled(1.0, "ICP correspondence distance [m]")
-    icp_voxel: float | None = scaled(
-        0.5, "voxel [m] of the source submap points ICP aligns onto the target's keypoints"
+    icp_refine: bool = Field(
+        True,
+        description="point-to-plane ICP from the SANDRO transform, then again with a Tukey kernel at the scale of "
+        "its residuals",
     )
+    icp_max_distance: float | None = scaled(1.0, "ICP correspondence distance [m]")
+    icp_voxel: float | None = scaled(0.5, "voxel [m] of both submaps' points in ICP and the overlap check")
     min_inliers: int = Field(20, ge=3, description="SANDRO inliers a loop needs")
     min_overlap: float = Field(
-        0.3, ge=0.0, le=1.0, description="share of those source points within icp_max_distance of target keypoints"
+        0.3,
+        ge=0.0,
+        le=1.0,
+        description="share of the source's ICP points within icp_max_distance of the target's, aligned",
     )
 
 

@@ -17,6 +17,9 @@ from sandro_slam.config import LoopRegistrationConfig
 
 MIN_SUBMAP_POINTS = 10  # a submap with fewer points is not described nor registered
 ICP_RELATIVE_TOLERANCE = 1e-4  # relative change of fitness and RMSE that ends ICP (open3d: 1e-6)
+ICP_TUKEY_SIGMAS = 4.685  # the robust ICP's Tukey kernel width in robust standard deviations of the residuals
+# (Tukey's constant: 95 % efficiency under Gaussian noise)
+ICP_MIN_SIGMA = 0.01  # x icp_voxel: the smallest residual scale the kernel takes (exact synthetic clouds)
 
 
 @dataclass
@@ -75,7 +78,8 @@ def register_submaps(
     target: SubmapDescription, source: SubmapDescription, config: LoopRegistrationConfig
 ) -> PairRegistration:
     """Estimate T_target_source between two submaps and verify it: SANDRO on FPFH matches, then
-    point-to-plane ICP of the source's `icp_points` onto the target's, whose fitness is the overlap.
+    point-to-plane ICP of the source's `icp_points` onto the target's, plain and then robust (`_icp`), whose
+    fitness is the overlap.
 
     ICP works at `icp_voxel` on both sides: onto the coarser FPFH keypoints, the loops lie further from the
     truth (docs/benchmarks.md).
@@ -126,12 +130,40 @@ def _with_normals(points: np.ndarray, voxel: float) -> o3d.geometry.PointCloud:
 def _icp(
     source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, T: np.ndarray, config: LoopRegistrationConfig
 ) -> tuple[np.ndarray, float]:
-    """Point-to-plane ICP (the target with normals) from T; (the transform, its fitness: the overlap)."""
+    """Point-to-plane ICP (the target with normals) from T, then again with a Tukey kernel `ICP_TUKEY_SIGMAS`
+    robust standard deviations (1.4826 x median absolute residual) of the first one's residuals wide; (the
+    transform, its fitness: the overlap).
+
+    Every source point within `icp_max_distance` of the target weighs in plain ICP, also those of what only the
+    source sees (the parts of a submap the other one does not share): their residuals reach the correspondence
+    distance and pull the transform along the flat directions of a partial overlap. The kernel leaves them out,
+    at the scale the residuals of the overlap show."""
     method = o3d.pipelines.registration.TransformationEstimationPointToPlane()
     criteria = o3d.pipelines.registration.ICPConvergenceCriteria(ICP_RELATIVE_TOLERANCE, ICP_RELATIVE_TOLERANCE)
     with open3d_on_one_thread():
         icp = o3d.pipelines.registration.registration_icp(source, target, config.icp_max_distance, T, method, criteria)
+        T = np.asarray(icp.transformation)
+        residuals = _point_to_plane_residuals(source, target, T, config.icp_max_distance)
+        if len(residuals) == 0:
+            return T, icp.fitness
+        sigma = max(1.4826 * float(np.median(np.abs(residuals))), ICP_MIN_SIGMA * config.icp_voxel)
+        kernel = o3d.pipelines.registration.TukeyLoss(ICP_TUKEY_SIGMAS * sigma)
+        robust = o3d.pipelines.registration.TransformationEstimationPointToPlane(kernel)
+        icp = o3d.pipelines.registration.registration_icp(source, target, config.icp_max_distance, T, robust, criteria)
     return np.asarray(icp.transformation), icp.fitness
+
+
+def _point_to_plane_residuals(
+    source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, T: np.ndarray, max_distance: float
+) -> np.ndarray:
+    """Signed distances [m] of the source points moved by T to the tangent plane of their nearest target point,
+    for those within `max_distance` of it (ICP's correspondences)."""
+    points = np.asarray(source.points) @ T[:3, :3].T + T[:3, 3]
+    target_points = np.asarray(target.points)
+    distance, nearest = cKDTree(target_points).query(points, distance_upper_bound=max_distance)
+    found = np.isfinite(distance)
+    offsets = points[found] - target_points[nearest[found]]
+    return np.einsum("ij,ij->i", offsets, np.asarray(target.normals)[nearest[found]])
 
 
 @contextmanager
