@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 
 from sandro_core import register
 from sandro_core.features import NORMAL_MAX_NN, NORMAL_RADIUS_FACTOR, fpfh_features, mutual_matches
+from sandro_core.geometry import transform_points
 from sandro_slam.config import LoopRegistrationConfig
 
 MIN_SUBMAP_POINTS = 10  # a submap with fewer points is not described nor registered
@@ -158,7 +159,7 @@ def _point_to_plane_residuals(
 ) -> np.ndarray:
     """Signed distances [m] of the source points moved by T to the tangent plane of their nearest target point,
     for those within `max_distance` of it (ICP's correspondences)."""
-    points = np.asarray(source.points) @ T[:3, :3].T + T[:3, 3]
+    points = transform_points(T, np.asarray(source.points))
     target_points = np.asarray(target.points)
     distance, nearest = cKDTree(target_points).query(points, distance_upper_bound=max_distance)
     found = np.isfinite(distance)
