@@ -144,7 +144,7 @@ def _icp(
     with open3d_on_one_thread():
         icp = o3d.pipelines.registration.registration_icp(source, target, config.icp_max_distance, T, method, criteria)
         T = np.asarray(icp.transformation)
-        residuals = _point_to_plane_residuals(source, target, T, config.icp_max_distance)
+        residuals = _point_to_plane_residuals(source, target, T, np.asarray(icp.correspondence_set))
         if len(residuals) == 0:
             return T, icp.fitness
         sigma = max(1.4826 * float(np.median(np.abs(residuals))), ICP_MIN_SIGMA * config.icp_voxel)
@@ -155,16 +155,14 @@ def _icp(
 
 
 def _point_to_plane_residuals(
-    source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, T: np.ndarray, max_distance: float
+    source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, T: np.ndarray, correspondences: np.ndarray
 ) -> np.ndarray:
-    """Signed distances [m] of the source points moved by T to the tangent plane of their nearest target point,
-    for those within `max_distance` of it (ICP's correspondences)."""
-    points = transform_points(T, np.asarray(source.points))
-    target_points = np.asarray(target.points)
-    distance, nearest = cKDTree(target_points).query(points, distance_upper_bound=max_distance)
-    found = np.isfinite(distance)
-    offsets = points[found] - target_points[nearest[found]]
-    return np.einsum("ij,ij->i", offsets, np.asarray(target.normals)[nearest[found]])
+    """Signed distances [m] of the source points moved by T to the tangent plane of their target point, for the
+    (source index, target index) rows of `correspondences` (ICP's last: each source point's nearest target point
+    within the correspondence distance at T)."""
+    points = transform_points(T, np.asarray(source.points)[correspondences[:, 0]])
+    offsets = points - np.asarray(target.points)[correspondences[:, 1]]
+    return np.einsum("ij,ij->i", offsets, np.asarray(target.normals)[correspondences[:, 1]])
 
 
 @contextmanager

@@ -1,14 +1,15 @@
 """sandro_slam.loop_registration: a submap description survives pickling (to worker processes) unchanged; ICP
-refinement is not pulled by what only one submap sees."""
+refinement is not pulled by what only one submap sees, and its residuals are point-to-plane distances."""
 
 import pickle
 
 import numpy as np
+import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from sandro_core.geometry import rotation_angle, transform_points
 from sandro_slam.config import SlamConfig
-from sandro_slam.loop_registration import describe_submap, icp_registration, register_submaps
+from sandro_slam.loop_registration import _point_to_plane_residuals, describe_submap, icp_registration, register_submaps
 
 
 def test_a_pickled_description_registers_exactly_as_the_original(drive):
@@ -50,3 +51,16 @@ def test_icp_ends_at_the_shared_surfaces_when_the_source_sees_more():
     error = np.linalg.inv(T_target_source) @ T
     assert np.linalg.norm(error[:3, 3]) < 0.02
     assert np.degrees(rotation_angle(error[:3, :3])) < 0.1
+
+
+def test_point_to_plane_residuals_are_signed_distances_along_the_target_normals():
+    rng = np.random.default_rng(0)
+    floor = np.column_stack([rng.uniform(0.0, 10.0, (50, 2)), np.zeros(50)])
+    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(floor))
+    target.normals = o3d.utility.Vector3dVector(np.tile([0.0, 0.0, 1.0], (50, 1)))
+    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(floor + [0.3, 0.0, 0.05]))
+    T = np.eye(4)
+    T[:3, 3] = [0.0, 0.0, -0.02]  # moves the source to 3 cm above the floor; the slide along it does not count
+    pairs = np.column_stack([np.arange(0, 50, 2), np.arange(1, 50, 2)])
+    residuals = _point_to_plane_residuals(source, target, T, pairs)
+    np.testing.assert_allclose(residuals, np.full(25, 0.03), atol=1e-12)
