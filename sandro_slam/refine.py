@@ -14,19 +14,18 @@ from collections.abc import Iterable
 from dataclasses import replace
 
 import numpy as np
+import small_gicp
 from kiss_icp.kiss_icp import KissICP
-from kiss_icp.mapping import get_voxel_hash_map
 
 from sandro_core.geometry import transform_points
 from sandro_slam.config import KeyframeConfig, SlamConfig
 from sandro_slam.factors import odometry_covariance
-from sandro_slam.keyframes import Keyframe, submap_points, voxel_downsample
+from sandro_slam.keyframes import Keyframe, submap_points
 from sandro_slam.loop_registration import icp_registration
 from sandro_slam.module import LoopClosure
 from sandro_slam.pose_graph import PoseGraph
 from sandro_slam.scan import Scan
 
-KERNEL_VOXELS = 0.5  # ICP kernel (and a third of its correspondence distance) in odometry voxels
 REDESKEW_SHIFT = 0.05  # [m at scale 1] deskew and register again when the registration moves a scan's motion more
 
 
@@ -44,19 +43,21 @@ def refine_poses(
         scans: the F scans of the first pass, in order (the ones it used: finite points, skipped ones left out).
         poses: (F, 4, 4) their first-pass poses (each moved with its keyframe), at the times the first pass gave.
         keyframes, keyframe_poses: the first pass's keyframes and their optimised T_world_keyframe: the map.
-        config: the resolved configuration of the first pass (its odometry settings register the scans).
+        config: the resolved configuration of the first pass (its odometry settings deskew and voxelise the scans,
+            its `odometry_gicp` settings register them).
 
     Each scan is deskewed with the motion from the refined pose before it to its own guess (KISS-ICP's
-    convention, to its latest point), registered with KISS-ICP's point-to-map ICP from the first-pass pose moved
-    with the correction of the scan before, and, when that moved its motion by more than REDESKEW_SHIFT x scale,
-    deskewed with the new motion and registered once more. Scans without per-point times are registered as they
-    are.
+    convention, to its latest point), registered with VGICP onto a map of Gaussian voxels of the submaps at their
+    optimised poses from the first-pass pose moved with the correction of the scan before, and, when that moved
+    its motion by more than REDESKEW_SHIFT x scale, deskewed with the new motion and registered once more. Scans
+    without per-point times are registered as they are. Gaussian voxels, not KISS-ICP's points: the submaps hold
+    one point per submap voxel, and point-to-point ICP onto so sparse a map is pulled by the sampling.
     """
     odometry = KissICP(config.odometry)
-    world_map = get_voxel_hash_map(config.odometry)
-    submaps = [transform_points(keyframe_poses[kf.key], kf.points) for kf in keyframes]
-    world_map.add_points(voxel_downsample(np.concatenate(submaps), config.keyframes.submap_voxel))
-    kernel = KERNEL_VOXELS * config.odometry.mapping.voxel_size
+    gicp = config.odometry_gicp
+    submaps = np.concatenate([transform_points(keyframe_poses[kf.key], kf.points) for kf in keyframes])
+    world_map = small_gicp.GaussianVoxelMap(gicp.resolution)
+    world_map.insert(small_gicp.preprocess_points(submaps, gicp.source_voxel, num_neighbors=10, num_threads=1)[0])
     refined, deskewed_scans = np.empty_like(poses), []
     for i, scan in enumerate(scans):
         if i >= len(poses):
@@ -64,9 +65,16 @@ def refine_poses(
         motion = _first_pass_motion(poses, i)  # from the refined scan before to this one's guess
         pose = poses[i] if i == 0 else refined[i - 1] @ motion
         for attempt in range(2):
-            deskewed = odometry.preprocessor.preprocess(scan.points, scan.times, motion)
-            source, fine = odometry.voxelize(deskewed)
-            pose = odometry.registration.align_points_to_map(source, world_map, pose, 3.0 * kernel, kernel)
+            _, fine = odometry.voxelize(odometry.preprocessor.preprocess(scan.points, scan.times, motion))
+            source, _ = small_gicp.preprocess_points(fine, gicp.source_voxel, num_neighbors=10, num_threads=1)
+            pose = small_gicp.align(
+                world_map,
+                source,
+                pose,
+                max_correspondence_distance=gicp.max_distance,
+                num_threads=1,
+                max_iterations=gicp.max_iterations,
+            ).T_target_source
             if i == 0 or len(scan.times) == 0 or attempt == 1:
                 break
             moved = np.linalg.inv(refined[i - 1]) @ pose
