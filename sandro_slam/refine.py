@@ -14,7 +14,6 @@ from collections.abc import Iterable
 from dataclasses import replace
 
 import numpy as np
-import small_gicp
 from kiss_icp.kiss_icp import KissICP
 
 from sandro_core.geometry import transform_points
@@ -23,6 +22,7 @@ from sandro_slam.factors import odometry_covariance
 from sandro_slam.keyframes import Keyframe, submap_points
 from sandro_slam.loop_registration import icp_registration
 from sandro_slam.module import LoopClosure
+from sandro_slam.odometry import GaussianMapRefiner
 from sandro_slam.pose_graph import PoseGraph
 from sandro_slam.scan import Scan
 
@@ -44,7 +44,7 @@ def refine_poses(
         poses: (F, 4, 4) their first-pass poses (each moved with its keyframe), at the times the first pass gave.
         keyframes, keyframe_poses: the first pass's keyframes and their optimised T_world_keyframe: the map.
         config: the resolved configuration of the first pass (its odometry settings deskew and voxelise the scans,
-            its `odometry_gicp` settings register them).
+            its `odometry_gicp` settings register them, as the odometry's `GaussianMapRefiner`).
 
     Each scan is deskewed with the motion from the refined pose before it to its own guess (KISS-ICP's
     convention, to its latest point), registered with VGICP onto a map of Gaussian voxels of the submaps at their
@@ -54,10 +54,10 @@ def refine_poses(
     one point per submap voxel, and point-to-point ICP onto so sparse a map is pulled by the sampling.
     """
     odometry = KissICP(config.odometry)
-    gicp = config.odometry_gicp
+    world_map = GaussianMapRefiner(config.odometry_gicp)
     submaps = np.concatenate([transform_points(keyframe_poses[kf.key], kf.points) for kf in keyframes])
-    world_map = small_gicp.GaussianVoxelMap(gicp.resolution)
-    world_map.insert(small_gicp.preprocess_points(submaps, gicp.source_voxel, num_neighbors=10, num_threads=1)[0])
+    _, cloud = world_map.align(submaps, np.eye(4))  # the map still empty: the submaps as the map takes them
+    world_map.insert(cloud, np.eye(4))
     refined, deskewed_scans = np.empty_like(poses), []
     for i, scan in enumerate(scans):
         if i >= len(poses):
@@ -66,15 +66,7 @@ def refine_poses(
         pose = poses[i] if i == 0 else refined[i - 1] @ motion
         for attempt in range(2):
             _, fine = odometry.voxelize(odometry.preprocessor.preprocess(scan.points, scan.times, motion))
-            source, _ = small_gicp.preprocess_points(fine, gicp.source_voxel, num_neighbors=10, num_threads=1)
-            pose = small_gicp.align(
-                world_map,
-                source,
-                pose,
-                max_correspondence_distance=gicp.max_distance,
-                num_threads=1,
-                max_iterations=gicp.max_iterations,
-            ).T_target_source
+            pose, _ = world_map.align(fine, pose)
             if i == 0 or len(scan.times) == 0 or attempt == 1:
                 break
             moved = np.linalg.inv(refined[i - 1]) @ pose
