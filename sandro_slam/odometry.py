@@ -46,11 +46,15 @@ class GaussianMapRefiner:
         self.map = small_gicp.GaussianVoxelMap(config.resolution)
         self.map.set_lru(horizon=100, clear_cycle=10)
 
+    def prepared(self, points: np.ndarray) -> small_gicp.PointCloud:
+        """`points` (N, 3) [m] as the map takes them (`insert`): downsampled to `source_voxel`, with their 10
+        neighbours' covariances."""
+        return small_gicp.preprocess_points(points, self.config.source_voxel, num_neighbors=10, num_threads=1)[0]
+
     def align(self, points: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray, small_gicp.PointCloud]:
         """T_map_scan of a scan (`points` (N, 3) [m] in its frame), refined from `guess` (`guess` itself while the
-        map is empty), and the scan as the map takes it (`insert`): downsampled to `source_voxel`, with its 10
-        neighbours' covariances."""
-        cloud, _ = small_gicp.preprocess_points(points, self.config.source_voxel, num_neighbors=10, num_threads=1)
+        map is empty), and the scan as the map takes it (`prepared`)."""
+        cloud = self.prepared(points)
         pose = guess
         if self.map.size() and cloud.size():
             pose = small_gicp.align(

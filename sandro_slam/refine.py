@@ -56,8 +56,7 @@ def refine_poses(
     odometry = KissICP(config.odometry)
     world_map = GaussianMapRefiner(config.odometry_gicp)
     submaps = np.concatenate([transform_points(keyframe_poses[kf.key], kf.points) for kf in keyframes])
-    _, cloud = world_map.align(submaps, np.eye(4))  # the map still empty: the submaps as the map takes them
-    world_map.insert(cloud, np.eye(4))
+    world_map.insert(world_map.prepared(submaps), np.eye(4))
     refined, deskewed_scans = np.empty_like(poses), []
     for i, scan in enumerate(scans):
         if i >= len(poses):
@@ -88,7 +87,7 @@ def rebuilt_keyframes(
     config: KeyframeConfig,
 ) -> list[Keyframe]:
     """The keyframes made again from refined scans: the same scans each, the frame of each at the refined pose of
-    its first scan, its submap from the scans (sensor frame) at their refined `poses`, cropped and voxelised as
+    its anchor scan, its submap from the scans (sensor frame) at their refined `poses`, cropped and voxelised as
     the first pass does it."""
     rebuilt = []
     for keyframe in keyframes:
