@@ -9,7 +9,7 @@ import pytest
 
 from pipelines.bench.suite import check_targets, floor_pairs, overlapping
 from pipelines.cli.bench import main
-from pipelines.simulation.suite import SUITE, cached_frames
+from pipelines.simulation.suite import HELD_OUT, SUITE, cached_frames
 
 
 def test_the_suite_varies_what_breaks_slam():
@@ -21,6 +21,23 @@ def test_the_suite_varies_what_breaks_slam():
     assert sum(spec.time_field != "per_point" for spec in SUITE) >= 2
     assert any("back" in spec.path for spec in SUITE)  # revisits in the opposite direction
     assert len({spec.cache_key() for spec in SUITE}) == len(SUITE)
+
+
+def test_the_held_out_sequences_are_no_suite_sequence_again(capsys):
+    """Each held-out sequence is another world (seed) of its site, driven with a path, sensor, platform and time
+    field the suite does not combine, and `--held-out --list` names them all."""
+
+    def combination(spec):
+        return spec.site, spec.path, spec.sensor, spec.platform, spec.time_field
+
+    combinations = {combination(spec) for spec in SUITE}
+    for spec in HELD_OUT:
+        assert spec.seed != 0 and combination(spec) not in combinations
+    assert {spec.site for spec in HELD_OUT} == {spec.site for spec in SUITE}
+    keys = {spec.cache_key() for spec in HELD_OUT}
+    assert len(keys) == len(HELD_OUT) and not keys & {spec.cache_key() for spec in SUITE}
+    assert main(["suite", "--held-out", "--list"]) == 0
+    assert [line.split()[0] for line in capsys.readouterr().out.splitlines()] == [spec.name for spec in HELD_OUT]
 
 
 def test_cached_frames_are_the_simulated_ones(tmp_path):
