@@ -8,6 +8,7 @@ import sys
 import time
 from collections import Counter
 from collections.abc import Iterable, Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,7 @@ from pipelines.io.inputs import Poses, open_input
 from pipelines.io.slam_results import write_results
 from pipelines.scan_frame import centres_kept, stands_still_in_a_fixed_frame, warn_frame, watched_for_world_frame
 from sandro_slam import GivenPoses, OfflineSlam, SlamConfig, SlamResult
+from sandro_slam.refine import pays
 
 GT_MAX_GAP = 0.25  # [s] ground-truth samples farther apart than this are not interpolated between
 
@@ -81,13 +83,16 @@ def run_input(
             with stop:
                 slam = OfflineSlam(config)
                 result = slam.run(stop.until_requested(frames), odometry=given)
-                if result.config.refine and not stop.requested:
+                refine = pays(result.config.refine, result.odometry_poses) and not stop.requested
+                if refine:
                     again = _timed(itertools.islice(source.scans, total), reading)
                     try:
                         result = slam.refine(stop.until_requested(again), result, progress)
                     except ValueError:
                         if not stop.requested:
                             raise  # a scan that cannot be read again; stopped: the first pass is written
+                        refine = False
+                result = replace(result, config=result.config.model_copy(update={"refine": refine}))  # as run
             wall = time.perf_counter() - start
             if centres and stands_still_in_a_fixed_frame(centres, result):
                 warn_frame("the scans seem to be in a fixed world frame, not the sensor's (their centres travel, "

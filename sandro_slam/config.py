@@ -193,10 +193,11 @@ class SlamConfig(YamlConfig):
     registration: LoopRegistrationConfig = Field(default_factory=LoopRegistrationConfig)
     graph: GraphConfig = Field(default_factory=GraphConfig)
     merge: MergeConfig = Field(default_factory=MergeConfig)
-    refine: bool = Field(
-        False,
+    refine: bool | Literal["auto"] = Field(
+        "auto",
         description="sandro-slam: a second pass after the first, every scan deskewed again and registered onto the "
-        "map of the loop-corrected submaps (`OfflineSlam.refine`)",
+        "map of the loop-corrected submaps (`OfflineSlam.refine`); auto: where the sensor sways (a walker, a hand: "
+        "`refine.pays`)",
     )
 
     @property

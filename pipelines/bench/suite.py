@@ -25,7 +25,8 @@ Measured: ATE (RMSE of positions after an SE3 alignment) of each and of sandro-s
 (`ate_odometry`), frames/s of each pipeline, the verified loops against the truth (wrong: more than WRONG_LOOP_M or
 WRONG_LOOP_DEG off; wrong ones kept in the final graph, real ones rejected), and against the frames their submaps
 are built in (`bench.slam.submap_frames`: a loop wrong by its anchors' truth and right by its submaps' is a right
-registration of a keyframe whose anchor scan the odometry placed off its own submap). The targets (issue "accuracy
+registration of a keyframe whose anchor scan the odometry placed off its own submap), and whether `sandro-slam` runs
+the second pass by default there (`refined_by_default`, from the odometry's `sway_deg`). The targets (issue "accuracy
 that holds on data the project was not tuned on") are checked at the end and every miss is printed.
 
 Writes into --out: suite.csv and suite.json (a row per sequence), suite.png (ATE per sequence and method, frames/s),
@@ -53,6 +54,7 @@ from pipelines.plots import plot_suite, plot_trajectories
 from pipelines.simulation.suite import HELD_OUT, SUITE, SuiteSequence, cached_frames
 from sandro_slam import OfflineSlam, SlamConfig, SlamResult
 from sandro_slam.factors import between_factor
+from sandro_slam.refine import pays, sway_deg
 
 WRONG_LOOP_M = 0.5  # a loop this far from the truth, or WRONG_LOOP_DEG, is wrong
 WRONG_LOOP_DEG = 2.0
@@ -137,6 +139,8 @@ def evaluate_sequence(
         "loops_verified": len(result.loops),
         "loops_kept": sum(loop.weight >= 0.5 for loop in result.loops),
         "fps_sandro_slam": n / result.timings["total"],
+        "sway_deg": sway_deg(result.odometry_poses),
+        "refined_by_default": pays(result.config.refine, result.odometry_poses),  # sandro-slam's second pass
     }
     print("KISS-ICP alone ...", flush=True)
     kiss_icp_poses, seconds = run_kiss_icp(frames, result.config)

@@ -59,7 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "topic of poses")  # fmt: skip
     parser.add_argument("--max-frames", type=int, help="process at most this many scans")
     parser.add_argument("--refine", action=argparse.BooleanOptionalAction, help="a second pass: every scan "
-                        "deskewed again, registered onto the loop-corrected map (default: the config's)")  # fmt: skip
+                        "deskewed again, registered onto the loop-corrected map (default: the config's, auto: where "
+                        "the sensor sways, as walking or handheld)")  # fmt: skip
     parser.add_argument("--map-voxel", type=float, default=0.2, help="voxel size of map.ply [m] (default 0.2)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     batch = parser.add_argument_group("batch (several inputs)")

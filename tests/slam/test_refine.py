@@ -6,7 +6,7 @@ from pipelines.simulation import simulate_sequence
 from sandro_core.geometry import rotation_angle
 from sandro_slam import SlamConfig
 from sandro_slam.keyframes import Keyframe, submap_points
-from sandro_slam.refine import refine_poses
+from sandro_slam.refine import SWAY_DEG, pays, refine_poses, sway_deg
 
 
 def test_the_second_pass_keeps_exact_poses_on_a_map_of_exact_submaps():
@@ -28,3 +28,25 @@ def test_the_second_pass_keeps_exact_poses_on_a_map_of_exact_submaps():
     rotation = np.degrees([rotation_angle(error[:3, :3]) for error in errors])
     assert translation.max() < 0.04  # 1.9 cm (7.3 cm point to point)
     assert rotation.max() < 0.1  # 0.03 deg (0.22 deg point to point)
+
+
+def _drive(yaw_steps_deg: np.ndarray, step: float = 1.0) -> np.ndarray:
+    """(F, 4, 4) poses: each sweep `step` m ahead and turned by its yaw step [deg]."""
+    poses = [np.eye(4)]
+    for yaw in np.radians(yaw_steps_deg):
+        motion = np.eye(4)
+        motion[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+        motion[0, 3] = step
+        poses.append(poses[-1] @ motion)
+    return np.array(poses)
+
+
+def test_the_second_pass_runs_by_default_where_the_sensor_sways():
+    """A car on a long curve, turning 2 deg a sweep: its rotation per sweep changes where the curve begins and
+    ends only. A walker whose yaw sways 1.5 deg back and forth: at every sweep."""
+    car = _drive(np.concatenate([np.zeros(20), np.full(60, 2.0), np.zeros(20)]))
+    walker = _drive(1.5 * np.sin(np.arange(100) * np.pi / 2.0), step=0.15)
+    assert sway_deg(car) == 0.0 and not pays("auto", car)
+    assert sway_deg(walker) > 2.0 * SWAY_DEG and pays("auto", walker)
+    assert pays(True, car) and not pays(False, walker)
+    assert sway_deg(car[:2]) == 0.0

@@ -60,6 +60,7 @@ def test_a_run_writes_every_output_and_evaluates_against_the_ground_truth(bag, t
     assert times[0] > 1e9  # header stamps, on the bag's clock
     printed = capsys.readouterr().out
     assert "ATE odometry" in printed and str(folder.name) in printed
+    assert "refine: false" in (folder / "config.yaml").read_text()  # auto: a car's steady drive, no second pass
 
     assert main([str(bag), "--out", str(out), "--quiet", "--max-frames", "5"]) == 0
     second = (out / "latest").resolve()
