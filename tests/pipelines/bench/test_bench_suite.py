@@ -61,6 +61,13 @@ def test_targets_name_every_miss():
     good = {**row, "ate_sandro_slam": 0.1, "loops_wrong_kept": 0, "loops_real_rejected": 0, "fps_sandro_slam": 30.0}
     assert check_targets([good]) == []
     assert check_targets([{**good, "revisits": False, "ate_perfect_loop_floor": 0.01}]) == []
+    by_default = {
+        **row,
+        "default_ate_sandro_slam": 0.1,
+        "default_loops_wrong_kept": 0,
+        "default_loops_real_rejected": 0,
+    }
+    assert len(check_targets([by_default])) == 1  # the second pass by default: only the frames/s of the first
     refined = {**good, "ate_kiss_icp": 1.0, "ate_sandro_slam_refined": 0.15, "refine_time_share": 0.8}
     assert check_targets([refined]) == []
     assert check_targets([{**refined, "ate_sandro_slam_refined": 0.3, "refine_time_share": 1.5}]) == [
