@@ -98,7 +98,7 @@ class ScanOdometry(KissICP):
     pillars it is the least certain part of the registration, and deskewing with it fed that back. Along z (up
     on a car, a walker, a handheld sensor) the ground and the floor hold every scan, and a walker's bob changes
     the height step from sweep to sweep: deskewed with the predicted height step, a walker's registered height
-    steps were off by twice the true ones.
+    steps were off by more than the true steps measure.
 
     The kernel (a third of the correspondence distance) is never below one voxel: on a straight, steady drive
     KISS-ICP's adaptive threshold shrinks until a sharp corner's first scans, turned 5.7 deg beyond the
