@@ -92,13 +92,10 @@ class ScanOdometry(KissICP):
     KISS-ICP deskews a scan with the motion of the scan before (constant velocity). Where the rotation rate
     changes within a sweep (a car turning into a sharp corner, the yaw sway of a walker) the scan stays bent by
     the difference, and so does its registered pose. When the registered rotation over the sweep differs from the
-    predicted one by more than REDESKEW_DEG, the scan is deskewed again with the registered rotation and the
-    registered translation along the sensor's z axis, and registered again from where the first registration
-    ended. The translation in the sensor's x-y plane stays the predicted one: along a corridor or a lane of
-    pillars it is the least certain part of the registration, and deskewing with it fed that back. Along z (up
-    on a car, a walker, a handheld sensor) the ground and the floor hold every scan, and a walker's bob changes
-    the height step from sweep to sweep: deskewed with the predicted height step, a walker's registered height
-    steps were off by more than the true steps measure.
+    predicted one by more than REDESKEW_DEG, the scan is deskewed again with the registered rotation (the
+    translation stays the predicted one: along a corridor or a lane of pillars the registered translation is
+    the least certain part, and deskewing with it fed that back) and registered again from where the first
+    registration ended.
 
     The kernel (a third of the correspondence distance) is never below one voxel: on a straight, steady drive
     KISS-ICP's adaptive threshold shrinks until a sharp corner's first scans, turned 5.7 deg beyond the
@@ -130,7 +127,7 @@ class ScanOdometry(KissICP):
         motion = motion_power(np.linalg.inv(self.last_pose) @ scan.pose, 1.0 / sweeps)
         deskews = len(timestamps) > 0 and self.config.data.deskew
         if deskews and rotation_angle(self.last_delta[:3, :3].T @ motion[:3, :3]) > np.radians(REDESKEW_DEG):
-            motion[:2, 3] = self.last_delta[:2, 3]
+            motion[:3, 3] = self.last_delta[:3, 3]
             scan = self._registered(frame, timestamps, motion, scan.pose, sigma)
         scan = self._refined(scan)
         if self.watch.flags(prediction, scan.pose) and deskews:  # every pose joins the watch's history
