@@ -51,21 +51,22 @@ class GaussianMapRefiner:
         neighbours' covariances."""
         return small_gicp.preprocess_points(points, self.config.source_voxel, num_neighbors=10, num_threads=1)[0]
 
-    def align(self, points: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray, small_gicp.PointCloud]:
+    def align(self, points: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray, small_gicp.PointCloud, int]:
         """T_map_scan of a scan (`points` (N, 3) [m] in its frame), refined from `guess` (`guess` itself while the
-        map is empty), and the scan as the map takes it (`prepared`)."""
+        map is empty), the scan as the map takes it (`prepared`) and how many of its points found a voxel within
+        `max_distance` at the end (0 while the map is empty)."""
         cloud = self.prepared(points)
-        pose = guess
-        if self.map.size() and cloud.size():
-            pose = small_gicp.align(
-                self.map,
-                cloud,
-                guess,
-                max_correspondence_distance=self.config.max_distance,
-                num_threads=1,  # KISS-ICP and the loop-closure worker keep the other cores busy: more threads wait
-                max_iterations=self.config.max_iterations,
-            ).T_target_source
-        return pose, cloud
+        if not (self.map.size() and cloud.size()):
+            return guess, cloud, 0
+        result = small_gicp.align(
+            self.map,
+            cloud,
+            guess,
+            max_correspondence_distance=self.config.max_distance,
+            num_threads=1,  # KISS-ICP and the loop-closure worker keep the other cores busy: more threads wait
+            max_iterations=self.config.max_iterations,
+        )
+        return result.T_target_source, cloud, result.num_inliers
 
     def insert(self, cloud: small_gicp.PointCloud, pose: np.ndarray) -> None:
         """Add a scan from `align` to the map at `pose` (T_map_scan)."""
@@ -161,7 +162,7 @@ class ScanOdometry(KissICP):
         """`scan` with its pose refined by VGICP (as it was without)."""
         if self.refiner is None:
             return scan
-        pose, cloud = self.refiner.align(scan.map_points, scan.pose)
+        pose, cloud, _ = self.refiner.align(scan.map_points, scan.pose)
         return RegisteredScan(pose, scan.deskewed, scan.source, scan.map_points, cloud)
 
     def _sweep_searched(

@@ -27,6 +27,8 @@ from sandro_slam.pose_graph import PoseGraph
 from sandro_slam.scan import Scan
 
 REDESKEW_SHIFT = 0.05  # [m at scale 1] deskew and register again when the registration moves a scan's motion more
+DISTINCT_GUESS = 0.5  # [m at scale 1] a scan is registered from more than one start where they lie this far apart,
+# and the one with the most points matched is kept
 SWAY_DEG = 0.5  # [deg] `refine: auto` runs the second pass when the odometry's rotation over a sweep changes by
 # more than this from one sweep to the next (median): a walker's or a hand's sway (0.76-2.05 deg on the simulated
 # walkers), not a car's steady motion (0.09-0.17 deg), on which the pass costs accuracy (docs/benchmarks.md)
@@ -50,31 +52,44 @@ def refine_poses(
             its `odometry_gicp` settings register them, as the odometry's `GaussianMapRefiner`).
 
     Each scan is deskewed with the motion from the refined pose before it to its own guess (KISS-ICP's
-    convention, to its latest point), registered with VGICP onto a map of Gaussian voxels of the submaps at their
-    optimised poses from the first-pass pose moved with the correction of the scan before, and, when that moved
-    its motion by more than REDESKEW_SHIFT x scale, deskewed with the new motion and registered once more. Scans
-    without per-point times are registered as they are. Gaussian voxels, not KISS-ICP's points: the submaps hold
-    one point per submap voxel, and point-to-point ICP onto so sparse a map is pulled by the sampling.
+    convention, to its latest point) and registered with VGICP onto a map of Gaussian voxels of the submaps at
+    their optimised poses, from the first-pass pose moved with the correction of the scan before; where the first
+    pass's motion jumps, from the other starts of `_guesses` too, keeping the registration that matched the most
+    points. When that moved its motion by more than REDESKEW_SHIFT x scale (and less than DISTINCT_GUESS x scale:
+    farther, the pose may be a restart from the first pass's, and its motion from the scan before no motion the
+    sensor made), it is deskewed with the new motion and registered once more. Scans without per-point times are
+    registered as they are. Gaussian voxels, not KISS-ICP's points: the submaps hold one point per submap voxel,
+    and point-to-point ICP onto so sparse a map is pulled by the sampling.
     """
     odometry = KissICP(config.odometry)
     world_map = GaussianMapRefiner(config.odometry_gicp)
     submaps = np.concatenate([transform_points(keyframe_poses[kf.key], kf.points) for kf in keyframes])
     world_map.insert(world_map.prepared(submaps), np.eye(4))
+
+    def registered(scan: Scan, guess: np.ndarray, motion: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        _, fine = odometry.voxelize(odometry.preprocessor.preprocess(scan.points, scan.times, motion))
+        pose, _, inliers = world_map.align(fine, guess)
+        return pose, fine, inliers
+
     refined, deskewed_scans = np.empty_like(poses), []
     for i, scan in enumerate(scans):
         if i >= len(poses):
             raise ValueError(f"more scans than the {len(poses)} poses of the first pass")
         motion = _first_pass_motion(poses, i)  # from the refined scan before to this one's guess
-        pose = poses[i] if i == 0 else refined[i - 1] @ motion
-        for attempt in range(2):
-            _, fine = odometry.voxelize(odometry.preprocessor.preprocess(scan.points, scan.times, motion))
-            pose, _ = world_map.align(fine, pose)
-            if i == 0 or len(scan.times) == 0 or attempt == 1:
-                break
+        if i == 0:
+            pose, fine, _ = registered(scan, poses[0], motion)
+        else:
+            pose, fine, _, start = max(
+                (
+                    registered(scan, guess, start) + (start,)
+                    for guess, start in _guesses(refined[:i], poses[i], motion, config)
+                ),
+                key=lambda candidate: candidate[2],
+            )
             moved = np.linalg.inv(refined[i - 1]) @ pose
-            if np.linalg.norm(moved[:3, 3] - motion[:3, 3]) < REDESKEW_SHIFT * config.scale:
-                break
-            motion = moved
+            shift = np.linalg.norm(moved[:3, 3] - start[:3, 3])
+            if len(scan.times) and REDESKEW_SHIFT * config.scale <= shift < DISTINCT_GUESS * config.scale:
+                pose, fine, _ = registered(scan, pose, moved)
         refined[i] = pose
         deskewed_scans.append(fine)
     if len(deskewed_scans) != len(poses):
@@ -149,6 +164,28 @@ def pays(setting: bool | str, odometry_poses: np.ndarray) -> bool:
     """Whether the second pass runs: `setting` (the configuration's `refine`) where it is a bool; for "auto", where
     the odometry's poses (F, 4, 4) sway (`sway_deg` above SWAY_DEG)."""
     return setting if isinstance(setting, bool) else sway_deg(odometry_poses) > SWAY_DEG
+
+
+def _guesses(
+    refined: np.ndarray, first_pass_pose: np.ndarray, motion: np.ndarray, config: SlamConfig
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Where to start registering scan i (T_world_sensor) and the motion to deskew it with (T_previous_current), given
+    the refined poses before it (`refined`, i >= 1 of them), its first-pass pose and the first pass's motion over it.
+
+    The refined scan before moved by the first pass's motion, first; where the odometry lost its way the first
+    pass's motion jumps, so also, where they differ by more than DISTINCT_GUESS x scale: that scan moved by the
+    refined motion over it (constant velocity), and the first-pass pose itself (so that one scan gone wrong does not
+    carry into all after it)."""
+    distinct = DISTINCT_GUESS * config.scale
+    previous = refined[-1]
+    guesses = [(previous @ motion, motion)]
+    if len(refined) > 1:
+        velocity = np.linalg.inv(refined[-2]) @ previous
+        if np.linalg.norm(velocity[:3, 3] - motion[:3, 3]) > distinct:
+            guesses.append((previous @ velocity, velocity))
+    if np.linalg.norm(first_pass_pose[:3, 3] - guesses[0][0][:3, 3]) > distinct:
+        guesses.append((first_pass_pose, motion))
+    return guesses
 
 
 def _first_pass_motion(poses: np.ndarray, i: int) -> np.ndarray:
