@@ -52,12 +52,17 @@ class GaussianMapRefiner:
         return small_gicp.preprocess_points(points, self.config.source_voxel, num_neighbors=10, num_threads=1)[0]
 
     def align(self, points: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray, small_gicp.PointCloud, int]:
-        """T_map_scan of a scan (`points` (N, 3) [m] in its frame), refined from `guess` (`guess` itself while the
-        map is empty), the scan as the map takes it (`prepared`) and how many of its points found a voxel within
-        `max_distance` at the end (0 while the map is empty)."""
+        """T_map_scan of a scan (`points` (N, 3) [m] in its frame), refined from `guess`, the scan as the map takes
+        it (`prepared`) and how many of its points matched (`register`)."""
         cloud = self.prepared(points)
+        pose, inliers = self.register(cloud, guess)
+        return pose, cloud, inliers
+
+    def register(self, cloud: small_gicp.PointCloud, guess: np.ndarray) -> tuple[np.ndarray, int]:
+        """T_map_scan of a `prepared` scan refined from `guess` (`guess` itself while the map is empty), and how many
+        of its points found a voxel within `max_distance` at the end (0 while the map is empty)."""
         if not (self.map.size() and cloud.size()):
-            return guess, cloud, 0
+            return guess, 0
         result = small_gicp.align(
             self.map,
             cloud,
@@ -66,7 +71,7 @@ class GaussianMapRefiner:
             num_threads=1,  # KISS-ICP and the loop-closure worker keep the other cores busy: more threads wait
             max_iterations=self.config.max_iterations,
         )
-        return result.T_target_source, cloud, result.num_inliers
+        return result.T_target_source, result.num_inliers
 
     def insert(self, cloud: small_gicp.PointCloud, pose: np.ndarray) -> None:
         """Add a scan from `align` to the map at `pose` (T_map_scan)."""

@@ -14,6 +14,7 @@ from collections.abc import Iterable
 from dataclasses import replace
 
 import numpy as np
+import small_gicp
 from kiss_icp.kiss_icp import KissICP
 
 from sandro_core.geometry import rotation_angle, transform_points
@@ -66,30 +67,31 @@ def refine_poses(
     submaps = np.concatenate([transform_points(keyframe_poses[kf.key], kf.points) for kf in keyframes])
     world_map.insert(world_map.prepared(submaps), np.eye(4))
 
-    def registered(scan: Scan, guess: np.ndarray, motion: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    def deskewed(scan: Scan, motion: np.ndarray) -> tuple[np.ndarray, small_gicp.PointCloud]:
         _, fine = odometry.voxelize(odometry.preprocessor.preprocess(scan.points, scan.times, motion))
-        pose, _, inliers = world_map.align(fine, guess)
-        return pose, fine, inliers
+        return fine, world_map.prepared(fine)
 
     refined, deskewed_scans = np.empty_like(poses), []
     for i, scan in enumerate(scans):
         if i >= len(poses):
             raise ValueError(f"more scans than the {len(poses)} poses of the first pass")
         motion = _first_pass_motion(poses, i)  # from the refined scan before to this one's guess
-        if i == 0:
-            pose, fine, _ = registered(scan, poses[0], motion)
-        else:
-            pose, fine, _, start = max(
-                (
-                    registered(scan, guess, start) + (start,)
-                    for guess, start in _guesses(refined[:i], poses[i], motion, config)
-                ),
-                key=lambda candidate: candidate[2],
-            )
+        guesses = [(poses[0], motion)] if i == 0 else _guesses(refined[:i], poses[i], motion, config)
+        prepared = {}  # per motion: guesses may share one
+        for _, start in guesses:
+            if start.tobytes() not in prepared:
+                prepared[start.tobytes()] = deskewed(scan, start)
+        pose, _, start = max(
+            (world_map.register(prepared[start.tobytes()][1], guess) + (start,) for guess, start in guesses),
+            key=lambda candidate: candidate[1],
+        )
+        fine = prepared[start.tobytes()][0]
+        if i > 0:
             moved = np.linalg.inv(refined[i - 1]) @ pose
             shift = np.linalg.norm(moved[:3, 3] - start[:3, 3])
             if len(scan.times) and REDESKEW_SHIFT * config.scale <= shift < DISTINCT_GUESS * config.scale:
-                pose, fine, _ = registered(scan, pose, moved)
+                fine, cloud = deskewed(scan, moved)
+                pose, _ = world_map.register(cloud, pose)
         refined[i] = pose
         deskewed_scans.append(fine)
     if len(deskewed_scans) != len(poses):
