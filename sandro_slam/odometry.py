@@ -51,12 +51,11 @@ class GaussianMapRefiner:
         neighbours' covariances."""
         return small_gicp.preprocess_points(points, self.config.source_voxel, num_neighbors=10, num_threads=1)[0]
 
-    def align(self, points: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray, small_gicp.PointCloud, int]:
-        """T_map_scan of a scan (`points` (N, 3) [m] in its frame), refined from `guess`, the scan as the map takes
-        it (`prepared`) and how many of its points matched (`register`)."""
+    def align(self, points: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray, small_gicp.PointCloud]:
+        """T_map_scan of a scan (`points` (N, 3) [m] in its frame), refined from `guess` (`register`), and the scan
+        as the map takes it (`prepared`)."""
         cloud = self.prepared(points)
-        pose, inliers = self.register(cloud, guess)
-        return pose, cloud, inliers
+        return self.register(cloud, guess)[0], cloud
 
     def register(self, cloud: small_gicp.PointCloud, guess: np.ndarray) -> tuple[np.ndarray, int]:
         """T_map_scan of a `prepared` scan refined from `guess` (`guess` itself while the map is empty), and how many
@@ -74,7 +73,7 @@ class GaussianMapRefiner:
         return result.T_target_source, result.num_inliers
 
     def insert(self, cloud: small_gicp.PointCloud, pose: np.ndarray) -> None:
-        """Add a scan from `align` to the map at `pose` (T_map_scan)."""
+        """Add a `prepared` scan to the map at `pose` (T_map_scan)."""
         self.map.insert(cloud, pose)
 
 
@@ -167,7 +166,7 @@ class ScanOdometry(KissICP):
         """`scan` with its pose refined by VGICP (as it was without)."""
         if self.refiner is None:
             return scan
-        pose, cloud, _ = self.refiner.align(scan.map_points, scan.pose)
+        pose, cloud = self.refiner.align(scan.map_points, scan.pose)
         return RegisteredScan(pose, scan.deskewed, scan.source, scan.map_points, cloud)
 
     def _sweep_searched(
