@@ -15,6 +15,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
 
+from pipelines.bench.slam import keyframe_truths
 from pipelines.simulation import simulate_sequence
 from pipelines.simulation.drift import drifted
 from sandro_slam import LoopCloser, LoopClosure, SlamConfig, check_loops
@@ -44,9 +45,13 @@ def keyframes(frames: int = 805, drift: float = 0.005, seed: int = 0) -> list[tu
     truth = np.array([T for _, T in scans])
     odometry = drifted(truth, drift)
     builder = KeyframeBuilder(SlamConfig().resolved().keyframes)  # street-scale lengths: a city drive
-    completed = [builder.add_scan(i, odometry[i], scan.points) for i, (scan, _) in enumerate(scans)]
+    completed, keyframe_of_frame = [], []
+    for i, (scan, _) in enumerate(scans):
+        completed.append(builder.add_scan(i, odometry[i], scan.points))
+        keyframe_of_frame.append(builder.current_key())
     completed = [keyframe for keyframe in completed + [builder.flush()] if keyframe is not None]
-    return [(kf.key, truth[kf.anchor_frame], odometry[kf.anchor_frame], kf.points) for kf in completed]
+    true_frames = keyframe_truths({kf.key: kf.anchor_frame for kf in completed}, np.array(keyframe_of_frame), truth)
+    return [(kf.key, true_frames[kf.key], kf.T_world_keyframe, kf.points) for kf in completed]
 
 
 def run(data: list[tuple], seed: int = 0) -> HostRun:

@@ -8,6 +8,7 @@ from typing import NamedTuple
 
 import numpy as np
 from kiss_icp.voxelization import voxel_down_sample
+from scipy.spatial.transform import Rotation
 
 from sandro_core.geometry import rotation_angle, transform_points
 from sandro_slam.config import KeyframeConfig
@@ -15,8 +16,10 @@ from sandro_slam.config import KeyframeConfig
 STEADY_DEG = 0.5  # [deg] a change of rotation between consecutive scans' motions that is always steady
 RECENT = 20  # scans whose changes of rotation set a steady one too: the walker's sway changes it on every scan
 STEADY_QUANTILE = 75  # [%] of those changes: a scan steady on both sides is then about every other one under sway
-ANCHOR_SCANS = 6  # a keyframe's frame is the pose of one of its first this many scans
+ANCHOR_SCANS = 6  # a keyframe's frame lies at the position of one of its first this many scans
 FOLD_SCANS = 100  # a keyframe holding this many scans' points folds them into its submap (a standstill's bound)
+FRAME_SCANS = 100  # a keyframe frame's rotation is the mean over its first this many scans (<= FOLD_SCANS: the
+# frame is fixed at the first fold)
 
 
 @dataclass
@@ -24,8 +27,8 @@ class Keyframe:
     """A keyframe: its odometry pose, the scans it spans and its submap (points in the keyframe frame)."""
 
     key: int
-    T_world_keyframe: np.ndarray  # odometry estimate, 4x4
-    anchor_frame: int  # index of the scan whose pose is the keyframe frame (one of its first ANCHOR_SCANS)
+    T_world_keyframe: np.ndarray  # odometry estimate, 4x4 (`keyframe_frame`)
+    anchor_frame: int  # index of the scan at whose position the keyframe frame lies (one of its first ANCHOR_SCANS)
     travelled: float  # odometry path length [m] at that scan
     points: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
 
@@ -49,6 +52,17 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
 def cropped(points: np.ndarray, radius: float) -> np.ndarray:
     """The points (N, 3) within `radius` [m] of the origin of their frame."""
     return points[np.einsum("ij,ij->i", points, points) <= radius**2]
+
+
+def keyframe_frame(T_world_anchor: np.ndarray, T_world_scans: np.ndarray) -> np.ndarray:
+    """A keyframe's frame (T_world_keyframe, 4x4): at the anchor scan's position, turned to the mean rotation
+    (chordal) of the keyframe's first FRAME_SCANS scans (`T_world_scans` (N, 4, 4), its scans in order). A
+    keyframe's submap holds the points of all its scans, so the rotation that places it best is theirs on average,
+    not one scan's: under a walker's sway each scan's registered rotation is off by a degree, noise that the mean
+    of a keyframe's scans averages out and its anchor scan alone would hand to every loop to it."""
+    T = np.array(T_world_anchor, dtype=np.float64)
+    T[:3, :3] = Rotation.from_matrix(np.asarray(T_world_scans)[:FRAME_SCANS, :3, :3]).mean().as_matrix()
+    return T
 
 
 def submap_points(
@@ -75,9 +89,9 @@ class KeyframeBuilder:
     """Starts a keyframe every `distance` metres or `angle_deg` degrees of odometry and accumulates the
     scans that follow it, until the next keyframe, into its submap.
 
-    A keyframe's frame is the odometry pose of one of its scans (its anchor), so a loop to it carries that one
-    pose's error. A scan in whose sweep the rotation rate stepped (into or out of a sharp turn) is deskewed with
-    the wrong rate and registered a degree or more off, an error the scans around it do not share; the motions to
+    A keyframe's frame lies at the odometry position of one of its scans (its anchor), turned to the mean rotation
+    of its scans (`keyframe_frame`). A scan in whose sweep the rotation rate stepped (into or out of a sharp turn)
+    is deskewed with the wrong rate and registered off, an error the scans around it do not share; the motions to
     it and from it show it: they differ from their neighbours'. The anchor is the first of the keyframe's first
     ANCHOR_SCANS scans that is steady on both sides: the change of rotation from the motion before it to its own,
     and from its own to the next one's, is below STEADY_DEG or the STEADY_QUANTILE percentile of the changes over the
@@ -88,7 +102,7 @@ class KeyframeBuilder:
     voxelisation of them all keeps the first point of every voxel. Scans come voxelised already (`Frontend`
     passes the scan KISS-ICP voxelised for its own map), which keeps the points to move few. A keyframe that
     holds FOLD_SCANS scans' points (the sensor standing still: a car at a light, a robot parked while the recording
-    goes on) fixes its anchor and folds them into its submap, which then grows only by what new scans add: the
+    goes on) fixes its anchor and frame and folds them into its submap, which then grows only by what new scans add: the
     same points as one voxelisation at the end, in bounded memory.
     """
 
@@ -97,8 +111,9 @@ class KeyframeBuilder:
         self._key: int | None = None  # the current keyframe's
         self._scans: list[_HeldScan] = []  # the current keyframe's; the points of folded ones dropped
         self._held = 0  # of those scans, how many still hold their points
-        self._folded: np.ndarray | None = None  # the submap of the folded scans, in the fixed anchor's frame
+        self._folded: np.ndarray | None = None  # the submap of the folded scans, in the fixed keyframe frame
         self._anchor_index: int | None = None  # fixed at the first fold
+        self._frame: np.ndarray | None = None  # T_world_keyframe, fixed at the first fold
         self._changes: deque[float] = deque(maxlen=RECENT)  # [rad] of the latest scans
         self._last_pose: np.ndarray | None = None
         self._last_motion: np.ndarray | None = None
@@ -152,25 +167,34 @@ class KeyframeBuilder:
         """The current keyframe, closed; `next_change`: the change of rotation [rad] at the scan after its last."""
         if self._key is None:
             return None
-        anchor = self._scans[self._anchor(next_change) if self._anchor_index is None else self._anchor_index]
-        keyframe = Keyframe(self._key, anchor.T_world_scan, anchor.frame_index, anchor.travelled, self._submap(anchor))
-        self._key, self._scans, self._held, self._folded, self._anchor_index = None, [], 0, None, None
+        if self._anchor_index is None:
+            self._fix_frame(next_change)
+        anchor = self._scans[self._anchor_index]
+        keyframe = Keyframe(self._key, self._frame, anchor.frame_index, anchor.travelled, self._submap())
+        self._key, self._scans, self._held, self._folded, self._anchor_index, self._frame = None, [], 0, None, None, None
         return keyframe
 
+    def _fix_frame(self, next_change: float) -> None:
+        """Choose the anchor among the scans so far and fix the keyframe frame (`keyframe_frame`)."""
+        self._anchor_index = self._anchor(next_change)
+        T_world_scans = np.array([scan.T_world_scan for scan in self._scans])
+        self._frame = keyframe_frame(self._scans[self._anchor_index].T_world_scan, T_world_scans)
+
     def _fold(self) -> None:
-        """Fix the anchor and fold the points of the scans held into the submap (see the class docstring)."""
+        """Fix the anchor and frame and fold the points of the scans held into the submap (see the class
+        docstring)."""
         if self._anchor_index is None:
-            self._anchor_index = self._anchor(np.inf)  # with FOLD_SCANS > ANCHOR_SCANS the scan after is known
-        self._folded = self._submap(self._scans[self._anchor_index])
+            self._fix_frame(np.inf)  # with FOLD_SCANS > ANCHOR_SCANS the scan after the anchor is known
+        self._folded = self._submap()
         first_held = len(self._scans) - self._held
         self._scans[first_held:] = [scan._replace(points=np.empty((0, 3))) for scan in self._scans[first_held:]]
         self._held = 0
 
-    def _submap(self, anchor: _HeldScan) -> np.ndarray:
-        """The submap [m, the anchor's frame] of the folded scans and of the scans held (the latest ones)."""
+    def _submap(self) -> np.ndarray:
+        """The submap [m, the keyframe frame] of the folded scans and of the scans held (the latest ones)."""
         held = self._scans[len(self._scans) - self._held :]
         return submap_points(
-            anchor.T_world_scan, [scan.T_world_scan for scan in held], [scan.points for scan in held], self.config,
+            self._frame, [scan.T_world_scan for scan in held], [scan.points for scan in held], self.config,
             self._folded,
         )  # fmt: skip
 

@@ -20,7 +20,7 @@ from kiss_icp.kiss_icp import KissICP
 from sandro_core.geometry import rotation_angle, transform_points
 from sandro_slam.config import KeyframeConfig, SlamConfig
 from sandro_slam.factors import odometry_covariance
-from sandro_slam.keyframes import Keyframe, submap_points
+from sandro_slam.keyframes import Keyframe, keyframe_frame, submap_points
 from sandro_slam.loop_registration import icp_registration
 from sandro_slam.module import LoopClosure
 from sandro_slam.odometry import GaussianMapRefiner
@@ -106,13 +106,13 @@ def rebuilt_keyframes(
     scans: list[np.ndarray],
     config: KeyframeConfig,
 ) -> list[Keyframe]:
-    """The keyframes made again from refined scans: the same scans each, the frame of each at the refined pose of
-    its anchor scan, its submap from the scans (sensor frame) at their refined `poses`, cropped and voxelised as
+    """The keyframes made again from refined scans: the same scans each, the frame of each from the refined poses
+    of its anchor and its scans (`keyframe_frame`), its submap from the scans (sensor frame) at their refined `poses`, cropped and voxelised as
     the first pass does it."""
     rebuilt = []
     for keyframe in keyframes:
-        T_world_keyframe = poses[keyframe.anchor_frame]
         frames = np.flatnonzero(keyframe_of_frame == keyframe.key)
+        T_world_keyframe = keyframe_frame(poses[keyframe.anchor_frame], poses[frames])
         points = submap_points(T_world_keyframe, [poses[i] for i in frames], [scans[i] for i in frames], config)
         rebuilt.append(
             Keyframe(keyframe.key, T_world_keyframe.copy(), keyframe.anchor_frame, keyframe.travelled, points)

@@ -52,6 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from pipelines.bench.common import default_out_dir, write_csv
+from pipelines.bench.slam import keyframe_truths
 from pipelines.bench.suite import WRONG_LOOP_DEG, WRONG_LOOP_M
 from pipelines.evaluation import align_se3, ate, pose_errors
 from pipelines.plots import plot_merges
@@ -260,15 +261,16 @@ def _accuracy(sessions, result) -> dict:
 
 
 def _loops_against_truth(sessions, result) -> dict[str, float | int]:
-    """The inter-session loops against the true relative pose of their keyframes' anchor scans: median error,
+    """The inter-session loops against the true relative pose of their keyframe frames: median error,
     wrong ones (more than WRONG_LOOP_DEG or WRONG_LOOP_M off) kept in the merged graph, real ones rejected (by the
     vote or the back end)."""
-    anchors = [_anchor_frames(session) for session, _, _ in sessions]
-    truths = [truth for _, truth, _ in sessions]
+    frames = [
+        keyframe_truths(_anchor_frames(session), session.keyframe_of_frame, truth) for session, truth, _ in sessions
+    ]
     errors, kept = [], []
     for loop in result.loops:
-        target = truths[loop.target_session][anchors[loop.target_session][loop.target_key]]
-        source = truths[loop.source_session][anchors[loop.source_session][loop.source_key]]
+        target = frames[loop.target_session][loop.target_key]
+        source = frames[loop.source_session][loop.source_key]
         errors.append(pose_errors(loop.T_target_source, np.linalg.inv(target) @ source))
         kept.append(loop.weight >= 0.5)
     if not errors:
@@ -285,8 +287,8 @@ def _loops_against_truth(sessions, result) -> dict[str, float | int]:
 
 
 def _anchor_frames(session: Session) -> dict[int, int]:
-    """Per keyframe key, its anchor scan: the frame at the keyframe's own pose."""
-    offsets = np.linalg.norm(session.T_keyframe_frame - np.eye(4), axis=(1, 2))
+    """Per keyframe key, its anchor scan: the frame at the keyframe frame's position."""
+    offsets = np.linalg.norm(session.T_keyframe_frame[:, :3, 3], axis=1)
     anchors = {}
     for key in session.keys:
         mine = np.flatnonzero(session.keyframe_of_frame == key)

@@ -51,6 +51,7 @@ from pipelines.simulation import simulate_sequence
 from sandro_slam import OfflineSlam, SlamConfig, SlamResult
 from sandro_slam.config import GraphConfig
 from sandro_slam.factors import between_factor
+from sandro_slam.keyframes import keyframe_frame
 from sandro_slam.robust_backend import robust_optimize
 
 WRONG_LOOP_M = 1.0  # a verified loop this far off the truth is a false positive of the front end
@@ -194,11 +195,11 @@ def keyframe_floor(result: SlamResult, truth: np.ndarray) -> float:
 def loops_against_truth(
     result: SlamResult, truth: np.ndarray, wrong_m: float = WRONG_LOOP_M, wrong_deg: float = WRONG_LOOP_DEG
 ) -> dict[str, float]:
-    """The verified loops against the true relative poses of their keyframes (`truth`: (F, 4, 4) at the
+    """The verified loops against the true relative poses of their keyframe frames (`truth`: (F, 4, 4) at the
     result's frames): median errors, the wrong ones (beyond `wrong_m` [m] or `wrong_deg` [deg]) and how many of
     them, and of the real ones, the back end rejected; and how many of the wrong ones kept are wrong against
     their submaps' own frames too (`submap_frames`): the others are right about the submaps, and what is off is
-    the anchor scan's odometry pose within its keyframe."""
+    where the odometry placed the keyframe's scans within it."""
     if not result.loops:
         return {"loops_wrong": 0}
     errors = loop_errors(result, truth)
@@ -218,13 +219,29 @@ def loops_against_truth(
     return metrics
 
 
+def keyframe_truths(anchors: dict[int, int], keyframe_of_frame: np.ndarray, truth: np.ndarray) -> dict[int, np.ndarray]:
+    """Per key, the true pose of its keyframe frame (`keyframes.keyframe_frame` of the true poses): `anchors` the
+    anchor scan's index per key, `keyframe_of_frame` (F,) the key of each frame, `truth` (F, 4, 4) at the frames."""
+    keyframe_of_frame = np.asarray(keyframe_of_frame)
+    return {
+        key: keyframe_frame(truth[anchor], truth[np.flatnonzero(keyframe_of_frame == key)])
+        for key, anchor in anchors.items()
+    }
+
+
+def result_keyframe_truths(result: SlamResult, truth: np.ndarray) -> dict[int, np.ndarray]:
+    """`keyframe_truths` of a SLAM result's keyframes."""
+    anchors = {keyframe.key: keyframe.anchor_frame for keyframe in result.keyframes}
+    return keyframe_truths(anchors, result.keyframe_of_frame, truth)
+
+
 def loop_errors(result: SlamResult, truth: np.ndarray, corrections: dict[int, np.ndarray] | None = None) -> np.ndarray:
-    """(L, 2) [deg, m]: each verified loop's error against the true relative pose of its keyframes (`truth`:
+    """(L, 2) [deg, m]: each verified loop's error against the true relative pose of its keyframe frames (`truth`:
     (F, 4, 4) at the result's frames), or, with `corrections` (`submap_frames`), of their submaps' frames."""
-    anchor_frame = {keyframe.key: keyframe.anchor_frame for keyframe in result.keyframes}
+    true_pose = result_keyframe_truths(result, truth)
     errors = []
     for loop in result.loops:
-        T_true = np.linalg.inv(truth[anchor_frame[loop.target_key]]) @ truth[anchor_frame[loop.source_key]]
+        T_true = np.linalg.inv(true_pose[loop.target_key]) @ true_pose[loop.source_key]
         if corrections is not None:
             T_true = np.linalg.inv(corrections[loop.target_key]) @ T_true @ corrections[loop.source_key]
         errors.append(pose_errors(loop.T_target_source, T_true))
@@ -232,16 +249,16 @@ def loop_errors(result: SlamResult, truth: np.ndarray, corrections: dict[int, np
 
 
 def submap_frames(result: SlamResult, truth: np.ndarray) -> dict[int, np.ndarray]:
-    """Per keyframe, the rigid transform E (4x4) from the frame its submap is built in (the odometry's, relative
-    to the anchor scan) to the true anchor frame that best fits its scans: E @ T_keyframe_frame ~ the scans' true
-    poses relative to the anchor's (rotation: the chordal mean; translation: the mean offset). Identity where the
-    odometry within the keyframe is right; a keyframe whose anchor scan alone is misregistered, or whose scans bend,
-    has its submap turned by E against its anchor's truth, and a loop that aligns the submaps right is that far
-    off the anchors' truth."""
+    """Per keyframe, the rigid transform E (4x4) from the frame its submap is built in (the odometry's) to the true
+    keyframe frame that best fits its scans: E @ T_keyframe_frame ~ the scans' true poses relative to the
+    keyframe frame's truth (`keyframe_truths`; rotation: the chordal mean; translation: the mean offset). Identity
+    where the odometry within the keyframe is right; a keyframe whose scans bend has its submap turned by E against
+    its frame's truth, and a loop that aligns the submaps right is that far off the frames' truth."""
+    true_pose = result_keyframe_truths(result, truth)
     corrections = {}
     for keyframe in result.keyframes:
         mine = np.flatnonzero(result.keyframe_of_frame == keyframe.key)
-        true_relative = np.linalg.inv(truth[keyframe.anchor_frame]) @ truth[mine]
+        true_relative = np.linalg.inv(true_pose[keyframe.key]) @ truth[mine]
         odometry_relative = result.T_keyframe_frame[mine]
         u, _, vt = np.linalg.svd(np.einsum("nij,nkj->ik", true_relative[:, :3, :3], odometry_relative[:, :3, :3]))
         E = np.eye(4)

@@ -24,8 +24,8 @@ Per sequence, run in turn on the same frames:
 Measured: ATE (RMSE of positions after an SE3 alignment) of each and of sandro-slam's odometry before its loops
 (`ate_odometry`), frames/s of each pipeline, the verified loops against the truth (wrong: more than WRONG_LOOP_M or
 WRONG_LOOP_DEG off; wrong ones kept in the final graph, real ones rejected), and against the frames their submaps
-are built in (`bench.slam.submap_frames`: a loop wrong by its anchors' truth and right by its submaps' is a right
-registration of a keyframe whose anchor scan the odometry placed off its own submap), and whether `sandro-slam` runs
+are built in (`bench.slam.submap_frames`: a loop wrong by its frames' truth and right by its submaps' is a right
+registration of keyframes whose scans the odometry placed off each other), and whether `sandro-slam` runs
 the second pass by default there (`refined_by_default`, from the odometry's `sway_deg`; the pass is then run and
 measured with or without --refine, and `default_*` hold what sandro-slam gives by default). The targets (issue
 "accuracy that holds on data the project was not tuned on") are checked at the end on those, and every miss is
@@ -49,7 +49,7 @@ from kiss_icp.kiss_icp import KissICP
 
 from pipelines.bench.common import default_out_dir, parse_list, write_csv
 from pipelines.bench.kiss_slam import kiss_slam_available, run_kiss_slam
-from pipelines.bench.slam import loop_errors, loops_against_truth, submap_frames
+from pipelines.bench.slam import loop_errors, loops_against_truth, result_keyframe_truths, submap_frames
 from pipelines.evaluation import ate
 from pipelines.io.trajectory import write_tum
 from pipelines.plots import plot_suite, plot_trajectories
@@ -213,10 +213,10 @@ def run_kiss_icp(frames, config: SlamConfig) -> tuple[np.ndarray, float]:
 
 def floor_pairs(result: SlamResult, truth: np.ndarray) -> list[tuple[int, int]]:
     """(key, key) of every pair of keyframes within `loops.radius` [m] of each other (true positions of their
-    anchors; `truth`: (F, 4, 4) at the result's frames) and at least `loops.exclude_recent` [m] of odometry travel
+    frames; `truth`: (F, 4, 4) at the result's frames) and at least `loops.exclude_recent` [m] of odometry travel
     apart: the loops perfect place recognition would find."""
     config = result.config
-    position = {kf.key: truth[kf.anchor_frame][:3, 3] for kf in result.keyframes}
+    position = {key: T[:3, 3] for key, T in result_keyframe_truths(result, truth).items()}
     return [
         (a.key, b.key)
         for i, a in enumerate(result.keyframes)
@@ -229,12 +229,13 @@ def floor_pairs(result: SlamResult, truth: np.ndarray) -> list[tuple[int, int]]:
 def overlapping(
     result: SlamResult, truth: np.ndarray, pairs: list[tuple[int, int]], min_shared: float = FLOOR_MIN_SHARED
 ) -> list[tuple[int, int]]:
-    """The `pairs` whose submaps, placed at their anchors' true poses, share at least `min_shared` of the smaller
+    """The `pairs` whose submaps, placed at their frames' true poses, share at least `min_shared` of the smaller
     one's occupied voxels (edge: twice `keyframes.submap_voxel`)."""
     voxel = 2.0 * result.config.keyframes.submap_voxel
     occupied = {}
+    true_pose = result_keyframe_truths(result, truth)
     for kf in result.keyframes:
-        T = truth[kf.anchor_frame]
+        T = true_pose[kf.key]
         occupied[kf.key] = set(map(tuple, np.floor((kf.points @ T[:3, :3].T + T[:3, 3]) / voxel).astype(int)))
 
     def shared(a: int, b: int) -> float:
@@ -251,17 +252,17 @@ def perfect_loop_floor(
     corrections: dict[int, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Frame poses (F, 4, 4) of sandro-slam's keyframe graph without its loops, with a loop of the true relative
-    pose of their anchors between the keyframes of every pair of `pairs` (`floor_pairs`, or some of them);
+    pose of their frames between the keyframes of every pair of `pairs` (`floor_pairs`, or some of them);
     `truth` (F, 4, 4) at the result's frames. Least squares from the odometry.
 
     With `corrections` (`bench.slam.submap_frames`) each loop is the true relative pose of the two submaps' frames
-    instead of the anchors': what a perfect registration of these submaps would measure."""
+    instead of the keyframe frames': what a perfect registration of these submaps would measure."""
     loop_factors = {loop.factor.factor_index for loop in result.loops}
     graph = gtsam.NonlinearFactorGraph()
     for index in range(result.graph.size()):
         if index not in loop_factors and result.graph.at(index) is not None:
             graph.add(result.graph.at(index))
-    true_pose = {kf.key: truth[kf.anchor_frame] for kf in result.keyframes}
+    true_pose = result_keyframe_truths(result, truth)
     covariance = np.diag(FLOOR_SIGMAS**2)
     for a, b in pairs:
         T_a_b = np.linalg.inv(true_pose[a]) @ true_pose[b]

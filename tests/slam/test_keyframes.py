@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from pipelines.bench.slam import keyframe_truths
 from pipelines.simulation import simulate_sequence
 from sandro_core.geometry import transform_points
 from sandro_slam.candidates import PlaceRecognition, RingKeyRecognition, radius_candidates, span_centres
@@ -77,13 +78,15 @@ def _keyframes(yaws: np.ndarray, distance: float = 10.0) -> tuple[list, list[int
 
 def test_a_keyframe_is_anchored_on_a_scan_steady_on_both_sides():
     """Scan 10, where the keyframe is due, was registered 2.4 deg off (the scan of a sharp corner's start): the
-    motions to it and from it, and from the scan after, show it; the keyframe's frame is scan 13's pose."""
+    motions to it and from it, and from the scan after, show it; the keyframe's frame lies at scan 13's position,
+    turned to the mean of its ten scans' rotations."""
     yaws = np.zeros(30)
     yaws[10] = 2.4
     keyframes, keys = _keyframes(yaws)
     assert keys[9:12] == [0, 1, 1]  # the scans belong to the keyframe from when it is due
     assert [k.anchor_frame for k in keyframes] == [2, 13, 20]  # the first: the first scan with both changes known
-    np.testing.assert_allclose(keyframes[1].T_world_keyframe, _pose(13.0))
+    np.testing.assert_allclose(keyframes[1].T_world_keyframe, _pose(13.0, yaw_deg=0.24), atol=1e-6)
+    np.testing.assert_allclose(keyframes[2].T_world_keyframe, _pose(20.0), atol=1e-12)
     assert keyframes[1].travelled == pytest.approx(13.0)
 
 
@@ -237,3 +240,19 @@ def test_a_submap_does_not_change_when_the_caller_reuses_its_arrays():
     builder.add_scan(0, pose, points)
     pose[0, 3], points[:] = 5.0, 7.0  # a caller writing its next scan into the same buffers
     np.testing.assert_allclose(builder.flush().points, [[1.0, 2.0, 0.0]])
+
+
+def test_under_sway_a_keyframe_frame_turns_as_its_scans_do_on_average():
+    """Each scan's registered yaw jitters by 1 deg about the true heading 0: the frame's rotation, their mean, lies
+    within half of that, where its anchor scan alone would hand its own jitter to every loop to it."""
+    rng = np.random.default_rng(0)
+    yaws = rng.normal(0.0, 1.0, 60)
+    keyframes, keys = _keyframes(yaws, distance=20.0)
+    frame_yaws = [np.degrees(np.arctan2(k.T_world_keyframe[1, 0], k.T_world_keyframe[0, 0])) for k in keyframes]
+    assert np.max(np.abs(frame_yaws)) < 0.5
+    assert np.max(np.abs(yaws[[k.anchor_frame for k in keyframes]])) > 0.5  # what the anchors alone would give
+    # the benchmarks' truth of a keyframe frame, taken from the same poses, is the frame itself
+    poses = np.array([_pose(float(i), yaw) for i, yaw in enumerate(yaws)])
+    truths = keyframe_truths({k.key: k.anchor_frame for k in keyframes}, np.array(keys), poses)
+    for keyframe in keyframes:
+        np.testing.assert_allclose(truths[keyframe.key], keyframe.T_world_keyframe, atol=1e-12)
