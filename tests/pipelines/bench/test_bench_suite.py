@@ -90,7 +90,7 @@ def test_floor_pairs_are_near_and_far_apart_and_the_registrable_ones_share_their
     ]  # each submap in its keyframe's frame: the points ahead of keyframe 0, keyframe 2's those behind it
     config = SimpleNamespace(loops=SimpleNamespace(radius=2.0, exclude_recent=15.0),
                              keyframes=SimpleNamespace(submap_voxel=0.5))  # fmt: skip
-    result = SimpleNamespace(keyframes=keyframes, config=config)
+    result = SimpleNamespace(keyframes=keyframes, config=config, keyframe_of_frame=np.arange(4))  # a scan each
     pairs = floor_pairs(result, truth)
     assert pairs == [(0, 2), (0, 3)]  # 1 and 3: 7.5 m apart
     assert overlapping(result, truth, pairs) == [(0, 3)]  # 2 saw nothing of what 0 saw
