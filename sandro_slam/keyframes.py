@@ -171,7 +171,8 @@ class KeyframeBuilder:
             self._fix_frame(next_change)
         anchor = self._scans[self._anchor_index]
         keyframe = Keyframe(self._key, self._frame, anchor.frame_index, anchor.travelled, self._submap())
-        self._key, self._scans, self._held, self._folded, self._anchor_index, self._frame = None, [], 0, None, None, None
+        self._key, self._scans, self._held, self._folded = None, [], 0, None
+        self._anchor_index, self._frame = None, None
         return keyframe
 
     def _fix_frame(self, next_change: float) -> None:

@@ -107,8 +107,8 @@ def rebuilt_keyframes(
     config: KeyframeConfig,
 ) -> list[Keyframe]:
     """The keyframes made again from refined scans: the same scans each, the frame of each from the refined poses
-    of its anchor and its scans (`keyframe_frame`), its submap from the scans (sensor frame) at their refined `poses`, cropped and voxelised as
-    the first pass does it."""
+    of its anchor and its scans (`keyframe_frame`), its submap from the scans (sensor frame) at their refined
+    `poses`, cropped and voxelised as the first pass does it."""
     rebuilt = []
     for keyframe in keyframes:
         frames = np.flatnonzero(keyframe_of_frame == keyframe.key)
