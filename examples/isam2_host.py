@@ -15,11 +15,10 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
 
-from pipelines.bench.slam import keyframe_truths
 from pipelines.simulation import simulate_sequence
 from pipelines.simulation.drift import drifted
 from sandro_slam import LoopCloser, LoopClosure, SlamConfig, check_loops
-from sandro_slam.keyframes import KeyframeBuilder
+from sandro_slam.keyframes import KeyframeBuilder, keyframe_frames
 
 GPS_EVERY = 20  # keyframes (200 m)
 GPS_SIGMA = 0.5  # [m]
@@ -50,7 +49,7 @@ def keyframes(frames: int = 805, drift: float = 0.005, seed: int = 0) -> list[tu
         completed.append(builder.add_scan(i, odometry[i], scan.points))
         keyframe_of_frame.append(builder.current_key())
     completed = [keyframe for keyframe in completed + [builder.flush()] if keyframe is not None]
-    true_frames = keyframe_truths({kf.key: kf.anchor_frame for kf in completed}, np.array(keyframe_of_frame), truth)
+    true_frames = keyframe_frames({kf.key: kf.anchor_frame for kf in completed}, np.array(keyframe_of_frame), truth)
     return [(kf.key, true_frames[kf.key], kf.T_world_keyframe, kf.points) for kf in completed]
 
 

@@ -65,6 +65,14 @@ def keyframe_frame(T_world_anchor: np.ndarray, T_world_scans: np.ndarray) -> np.
     return T
 
 
+def keyframe_frames(anchors: dict[int, int], keyframe_of_frame: np.ndarray, poses: np.ndarray) -> dict[int, np.ndarray]:
+    """Per key, its keyframe frame (`keyframe_frame`) from the poses (F, 4, 4) of every scan: `anchors` the anchor
+    scan's index per key, `keyframe_of_frame` (F,) each scan's key. From the odometry's poses the frames the builder
+    made; from the true poses, their truth."""
+    keyframe_of_frame = np.asarray(keyframe_of_frame)
+    return {key: keyframe_frame(poses[anchor], poses[keyframe_of_frame == key]) for key, anchor in anchors.items()}
+
+
 def submap_points(
     T_world_keyframe: np.ndarray,
     T_world_scans: list[np.ndarray],

@@ -52,7 +52,6 @@ from pathlib import Path
 import numpy as np
 
 from pipelines.bench.common import default_out_dir, write_csv
-from pipelines.bench.slam import keyframe_truths
 from pipelines.bench.suite import WRONG_LOOP_DEG, WRONG_LOOP_M
 from pipelines.evaluation import align_se3, ate, pose_errors
 from pipelines.plots import plot_merges
@@ -60,6 +59,7 @@ from pipelines.simulation import CityLayout, simulate_sequence
 from pipelines.simulation.suite import SUITE, SuiteSequence, cached_frames
 from sandro_core.geometry import rigid_fit
 from sandro_slam import OfflineSlam, Session, SlamConfig, merge_sessions
+from sandro_slam.keyframes import keyframe_frames
 
 PITCH = CityLayout().pitch
 ROUTES = {  # name: (loop, start distance [m])
@@ -265,7 +265,7 @@ def _loops_against_truth(sessions, result) -> dict[str, float | int]:
     wrong ones (more than WRONG_LOOP_DEG or WRONG_LOOP_M off) kept in the merged graph, real ones rejected (by the
     vote or the back end)."""
     frames = [
-        keyframe_truths(_anchor_frames(session), session.keyframe_of_frame, truth) for session, truth, _ in sessions
+        keyframe_frames(_anchor_frames(session), session.keyframe_of_frame, truth) for session, truth, _ in sessions
     ]
     errors, kept = [], []
     for loop in result.loops:

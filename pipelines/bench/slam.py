@@ -51,7 +51,7 @@ from pipelines.simulation import simulate_sequence
 from sandro_slam import OfflineSlam, SlamConfig, SlamResult
 from sandro_slam.config import GraphConfig
 from sandro_slam.factors import between_factor
-from sandro_slam.keyframes import keyframe_frame
+from sandro_slam.keyframes import keyframe_frames
 from sandro_slam.robust_backend import robust_optimize
 
 WRONG_LOOP_M = 1.0  # a verified loop this far off the truth is a false positive of the front end
@@ -219,20 +219,11 @@ def loops_against_truth(
     return metrics
 
 
-def keyframe_truths(anchors: dict[int, int], keyframe_of_frame: np.ndarray, truth: np.ndarray) -> dict[int, np.ndarray]:
-    """Per key, the true pose of its keyframe frame (`keyframes.keyframe_frame` of the true poses): `anchors` the
-    anchor scan's index per key, `keyframe_of_frame` (F,) the key of each frame, `truth` (F, 4, 4) at the frames."""
-    keyframe_of_frame = np.asarray(keyframe_of_frame)
-    return {
-        key: keyframe_frame(truth[anchor], truth[np.flatnonzero(keyframe_of_frame == key)])
-        for key, anchor in anchors.items()
-    }
-
-
 def result_keyframe_truths(result: SlamResult, truth: np.ndarray) -> dict[int, np.ndarray]:
-    """`keyframe_truths` of a SLAM result's keyframes."""
+    """Per key, the true pose of a SLAM result's keyframe frame (`keyframes.keyframe_frames` of the true poses,
+    `truth` (F, 4, 4) at the result's frames)."""
     anchors = {keyframe.key: keyframe.anchor_frame for keyframe in result.keyframes}
-    return keyframe_truths(anchors, result.keyframe_of_frame, truth)
+    return keyframe_frames(anchors, result.keyframe_of_frame, truth)
 
 
 def loop_errors(result: SlamResult, truth: np.ndarray, corrections: dict[int, np.ndarray] | None = None) -> np.ndarray:
@@ -251,9 +242,9 @@ def loop_errors(result: SlamResult, truth: np.ndarray, corrections: dict[int, np
 def submap_frames(result: SlamResult, truth: np.ndarray) -> dict[int, np.ndarray]:
     """Per keyframe, the rigid transform E (4x4) from the frame its submap is built in (the odometry's) to the true
     keyframe frame that best fits its scans: E @ T_keyframe_frame ~ the scans' true poses relative to the
-    keyframe frame's truth (`keyframe_truths`; rotation: the chordal mean; translation: the mean offset). Identity
-    where the odometry within the keyframe is right; a keyframe whose scans bend has its submap turned by E against
-    its frame's truth, and a loop that aligns the submaps right is that far off the frames' truth."""
+    keyframe frame's truth (`result_keyframe_truths`; rotation: the chordal mean; translation: the mean offset).
+    Identity where the odometry within the keyframe is right; a keyframe whose scans bend has its submap turned by E
+    against its frame's truth, and a loop that aligns the submaps right is that far off the frames' truth."""
     true_pose = result_keyframe_truths(result, truth)
     corrections = {}
     for keyframe in result.keyframes:

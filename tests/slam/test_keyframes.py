@@ -9,12 +9,11 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from pipelines.bench.slam import keyframe_truths
 from pipelines.simulation import simulate_sequence
 from sandro_core.geometry import transform_points
 from sandro_slam.candidates import PlaceRecognition, RingKeyRecognition, radius_candidates, span_centres
 from sandro_slam.config import KeyframeConfig, LoopDetectionConfig, SlamConfig
-from sandro_slam.keyframes import ANCHOR_SCANS, FOLD_SCANS, KeyframeBuilder
+from sandro_slam.keyframes import ANCHOR_SCANS, FOLD_SCANS, KeyframeBuilder, keyframe_frames
 
 REFERENCE = SlamConfig().resolved()  # every length at its reference value
 
@@ -253,6 +252,6 @@ def test_under_sway_a_keyframe_frame_turns_as_its_scans_do_on_average():
     assert np.max(np.abs(yaws[[k.anchor_frame for k in keyframes]])) > 0.5  # what the anchors alone would give
     # the benchmarks' truth of a keyframe frame, taken from the same poses, is the frame itself
     poses = np.array([_pose(float(i), yaw) for i, yaw in enumerate(yaws)])
-    truths = keyframe_truths({k.key: k.anchor_frame for k in keyframes}, np.array(keys), poses)
+    truths = keyframe_frames({k.key: k.anchor_frame for k in keyframes}, np.array(keys), poses)
     for keyframe in keyframes:
         np.testing.assert_allclose(truths[keyframe.key], keyframe.T_world_keyframe, atol=1e-12)
