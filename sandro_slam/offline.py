@@ -20,6 +20,7 @@ from sandro_slam.odometry import GivenPoses
 from sandro_slam.refine import rebuilt_keyframes, refine_poses, reoptimized
 from sandro_slam.scan import MIN_VOXELS, VOXEL_COUNT_SCANS, Scan, SparseScans, as_scan, occupied_voxels
 from sandro_slam.scene_scale import SCANS, scene_scale
+from sandro_slam.sweep_times import Rotation, sweep_period, with_azimuth_times
 from sandro_slam.timing import Stopwatch
 
 
@@ -80,14 +81,22 @@ class OfflineSlam:
         scans = (
             (index, _finite(as_scan(frame, index))) for index, frame in enumerate(_with_progress(frames, progress))
         )
-        head = [] if self.config.scale is not None else _first_scans(scans)  # a scale set is used as it is
-        if head:
+        unset_scale = self.config.scale is None  # a scale set is used as it is
+        head = _first_scans(scans) if unset_scale or _needs_head(self.config, odometry) else []
+        if head and unset_scale:
             data = self.config.odometry.data
             scale = scene_scale([scan.points for _, scan in head if len(scan.points)], data.min_range, data.max_range)
             self.module = LoopClosureModule(self.config.resolved(scale))
         elif self.module is None:
             self.module = LoopClosureModule(self.config.resolved())  # the scale set, or 1 without any scan
         config = self.module.config
+        if odometry is not None:
+            config.sweep_times = "none"  # a given odometry takes scans without times as deskewed (`GivenPoses`)
+        rotation = _sweep_rotation(config)
+        if rotation is not None:
+            period = sweep_period([scan.timestamp for _, scan in head if len(scan.points)])
+            head = [(index, with_azimuth_times(scan, period, rotation)) for index, scan in head]
+            scans = ((index, with_azimuth_times(scan, period, rotation)) for index, scan in scans)
         policy = config.graph.estimate_odometry_noise
         self.module.estimate_odometry_noise = policy == "always" or (
             policy == "given_odometry" and odometry is not None
@@ -145,6 +154,11 @@ class OfflineSlam:
             if index not in skipped and len((scan := _finite(as_scan(frame, index))).points)
         )
         config = result.config
+        rotation = _sweep_rotation(config)
+        if rotation is not None:  # the times the first pass gave the scans
+            head = list(itertools.islice(used, SCANS))
+            period = sweep_period([scan.timestamp for scan in head])
+            used = (with_azimuth_times(scan, period, rotation) for scan in itertools.chain(head, used))
         scan_poses, scans = refine_poses(
             itertools.islice(used, len(result.poses)), result.poses, result.keyframes, result.keyframe_poses, config
         )
@@ -207,6 +221,16 @@ def _relative_to_keyframes(keyframes: list[Keyframe], keyframe_of_frame: np.ndar
     """(F, 4, 4) each frame's pose relative to its keyframe's."""
     T_keyframe_world = {keyframe.key: np.linalg.inv(keyframe.T_world_keyframe) for keyframe in keyframes}
     return np.stack([T_keyframe_world[int(key)] for key in keyframe_of_frame]) @ poses
+
+
+def _needs_head(config: SlamConfig, odometry: GivenPoses | None) -> bool:
+    """Whether `run` reads the first scans ahead for the sweep period of their azimuth times (the scale aside)."""
+    return odometry is None and _sweep_rotation(config) is not None
+
+
+def _sweep_rotation(config: SlamConfig) -> Rotation | None:
+    """The turning direction whose azimuth times scans without per-point times get (None: none)."""
+    return config.sweep_times if config.sweep_times in ("clockwise", "counterclockwise") else None
 
 
 def _first_scans(scans: Iterator[tuple[int, Scan]]) -> list[tuple[int, Scan]]:

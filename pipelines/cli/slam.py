@@ -61,6 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--refine", action=argparse.BooleanOptionalAction, help="a second pass: every scan "
                         "deskewed again, registered onto the loop-corrected map (default: the config's, auto: where "
                         "the sensor sways, as walking or handheld)")  # fmt: skip
+    parser.add_argument("--sweep-times", choices=["none", "clockwise", "counterclockwise"], help="clouds without "
+                        "per-point times: raw sweeps of a spinning LiDAR turning this way seen from above get times "
+                        "from the azimuth (default: the config's, none: taken as deskewed)")  # fmt: skip
     parser.add_argument("--map-voxel", type=float, default=0.2, help="voxel size of map.ply [m] (default 0.2)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     batch = parser.add_argument_group("batch (several inputs)")
@@ -95,6 +98,8 @@ def _run(args: argparse.Namespace) -> int:
     config = SlamConfig.load(args.config)
     if args.refine is not None:
         config.refine = args.refine
+    if args.sweep_times is not None:
+        config.sweep_times = args.sweep_times
     if len(args.input) > 1 or args.workers is not None or args.ray is not None or args.resume:
         return _run_batch(args, config)
     from pipelines.io.inputs import read_poses
