@@ -94,6 +94,8 @@ def run_input(
                         refine = False
                 result = replace(result, config=result.config.model_copy(update={"refine": refine}))  # as run
             wall = time.perf_counter() - start
+            if "sweep_test" in result.timings:
+                print(f"sandro-slam: {sweep_times_note(result.config.sweep_times)}", file=sys.stderr, flush=True)
             if centres and stands_still_in_a_fixed_frame(centres, result):
                 warn_frame("the scans seem to be in a fixed world frame, not the sensor's (their centres travel, "
                            "KISS-ICP's odometry stays put)")  # fmt: skip
@@ -121,6 +123,15 @@ def _given_poses(odometry: Poses | None, scans: int) -> GivenPoses | None:
     if times is None and len(poses) != scans:
         raise ValueError(f"the odometry has {len(poses)} poses for {scans} scans (one per scan, or give times: TUM)")
     return GivenPoses(poses, times)
+
+
+def sweep_times_note(sweep_times: str) -> str:
+    """What `sweep_times: auto` made of scans without per-point times, and how to override it."""
+    if sweep_times == "none":
+        return ("the scans have no per-point times and look deskewed (or the sensor sways): taken as they are; "
+                "--sweep-times clockwise if they are raw sweeps of a spinning LiDAR")  # fmt: skip
+    return (f"the scans have no per-point times and look like raw sweeps turning {sweep_times}: deskewed with times "
+            "from the azimuth; --sweep-times none to take them as they are")  # fmt: skip
 
 
 def run_metrics(result: SlamResult, wall: float, read_seconds: float) -> dict:

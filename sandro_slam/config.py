@@ -199,11 +199,12 @@ class SlamConfig(YamlConfig):
         "map of the loop-corrected submaps (`OfflineSlam.refine`); auto: where the sensor sways (a walker, a hand: "
         "`refine.pays`)",
     )
-    sweep_times: Literal["none", "clockwise", "counterclockwise"] = Field(
-        "none",
+    sweep_times: Literal["auto", "none", "clockwise", "counterclockwise"] = Field(
+        "auto",
         description="OfflineSlam, clouds without per-point times: none: taken as deskewed; clockwise or "
         "counterclockwise: raw sweeps of a spinning sensor turning that way seen from above, each sweep starting "
-        "behind it, given per-point times from the azimuth (`sweep_times`; not for a swaying sensor)",
+        "behind it, given per-point times from the azimuth (`sweep_times`; not for a swaying sensor); auto: the "
+        "direction told from the first scans where they look raw, else none (`sweep_times.detected_rotation`)",
     )
 
     @property

@@ -20,7 +20,7 @@ from sandro_slam.odometry import GivenPoses
 from sandro_slam.refine import rebuilt_keyframes, refine_poses, reoptimized
 from sandro_slam.scan import MIN_VOXELS, VOXEL_COUNT_SCANS, Scan, SparseScans, as_scan, occupied_voxels
 from sandro_slam.scene_scale import SCANS, scene_scale
-from sandro_slam.sweep_times import Rotation, sweep_period, with_azimuth_times
+from sandro_slam.sweep_times import TEST_SCANS, Rotation, detected_rotation, sweep_period, with_azimuth_times
 from sandro_slam.timing import Stopwatch
 
 
@@ -47,8 +47,9 @@ class SlamResult:
     odometry_noise_scale: float  # on the odometry covariances in the final optimisation (1: as configured)
     config: SlamConfig  # the configuration used, every length resolved (`SlamConfig.resolved`)
     timings: dict[str, float] = field(default_factory=dict)  # wall seconds: odometry, loop_closure (in this
-    # process), optimization (with `loops.in_background`: also the wait for the worker), total; and the
-    # worker's loop_closure_worker_cpu (CPU seconds) when it ran
+    # process), optimization (with `loops.in_background`: also the wait for the worker), total; the worker's
+    # loop_closure_worker_cpu (CPU seconds) when it ran; sweep_test where `sweep_times: auto` judged scans without
+    # per-point times (`detected_rotation`)
 
     def frame_poses(self, keyframe_poses: dict[int, np.ndarray]) -> np.ndarray:
         """(F, 4, 4) T_world_sensor of every frame, each moved rigidly with its keyframe to `keyframe_poses`."""
@@ -90,11 +91,14 @@ class OfflineSlam:
         elif self.module is None:
             self.module = LoopClosureModule(self.config.resolved())  # the scale set, or 1 without any scan
         config = self.module.config
+        sweep_test = None  # seconds `detected_rotation` took, where it ran
         if odometry is not None:
             config.sweep_times = "none"  # a given odometry takes scans without times as deskewed (`GivenPoses`)
+        elif config.sweep_times == "auto":
+            head, sweep_test = _told_sweep_times(config, head, scans)
         rotation = _sweep_rotation(config)
         if rotation is not None:
-            period = sweep_period([scan.timestamp for _, scan in head if len(scan.points)])
+            period = sweep_period([scan.timestamp for _, scan in head if len(scan.points)][:SCANS])
             head = [(index, with_azimuth_times(scan, period, rotation)) for index, scan in head]
             scans = ((index, with_azimuth_times(scan, period, rotation)) for index, scan in scans)
         policy = config.graph.estimate_odometry_noise
@@ -133,6 +137,8 @@ class OfflineSlam:
             frontend.finish()
             skipped = sorted(skipped + [added[i] for i in frontend.unmatched])
             timings = stopwatch.seconds
+            if sweep_test is not None:
+                timings["sweep_test"] = sweep_test
             with stopwatch("optimization"):
                 if background is None:
                     keyframe_poses = self.module.optimize()
@@ -228,18 +234,38 @@ def _needs_head(config: SlamConfig, odometry: GivenPoses | None) -> bool:
     return odometry is None and _sweep_rotation(config) is not None
 
 
+def _told_sweep_times(
+    config: SlamConfig, head: list[tuple[int, Scan]], scans: Iterator[tuple[int, Scan]]
+) -> tuple[list[tuple[int, Scan]], float | None]:
+    """`sweep_times: auto` made "none" or a turning direction: `detected_rotation` on up to TEST_SCANS scans with
+    points, read on from `head`, where its first scan with points has no per-point times. The head as read, and the
+    seconds the test took (None where it did not run)."""
+    head = head or _first_scans(scans, 1)
+    first = next((scan for _, scan in head if len(scan.points)), None)
+    if first is None or len(first.times):
+        config.sweep_times = "none"
+        return head, None
+    head = head + _first_scans(scans, TEST_SCANS - sum(len(scan.points) > 0 for _, scan in head))
+    clouds = [scan for _, scan in head if len(scan.points)]
+    period = sweep_period([scan.timestamp for scan in clouds[:SCANS]])
+    start = time.perf_counter()
+    rotation = detected_rotation([scan.points for scan in clouds[:TEST_SCANS]], config.odometry, period)
+    config.sweep_times = rotation or "none"
+    return head, time.perf_counter() - start
+
+
 def _sweep_rotation(config: SlamConfig) -> Rotation | None:
     """The turning direction whose azimuth times scans without per-point times get (None: none)."""
     return config.sweep_times if config.sweep_times in ("clockwise", "counterclockwise") else None
 
 
-def _first_scans(scans: Iterator[tuple[int, Scan]]) -> list[tuple[int, Scan]]:
-    """Items of `scans` up to the SCANS-th that has points (all of them if fewer)."""
+def _first_scans(scans: Iterator[tuple[int, Scan]], count: int = SCANS) -> list[tuple[int, Scan]]:
+    """Items of `scans` up to the `count`-th that has points (all of them if fewer)."""
     head, with_points = [], 0
-    for item in scans:
+    for item in scans if count > 0 else ():
         head.append(item)
         with_points += len(item[1].points) > 0
-        if with_points >= SCANS:
+        if with_points >= count:
             break
     return head
 

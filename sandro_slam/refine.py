@@ -17,7 +17,7 @@ import numpy as np
 import small_gicp
 from kiss_icp.kiss_icp import KissICP
 
-from sandro_core.geometry import rotation_angle, transform_points
+from sandro_core.geometry import transform_points
 from sandro_slam.config import KeyframeConfig, SlamConfig
 from sandro_slam.factors import odometry_covariance
 from sandro_slam.keyframes import Keyframe, keyframe_frame, submap_points
@@ -26,13 +26,11 @@ from sandro_slam.module import LoopClosure
 from sandro_slam.odometry import GaussianMapRefiner
 from sandro_slam.pose_graph import PoseGraph
 from sandro_slam.scan import Scan
+from sandro_slam.sway import SWAY_DEG, sway_deg
 
 REDESKEW_SHIFT = 0.05  # [m at scale 1] deskew and register again when the registration moves a scan's motion more
 DISTINCT_GUESS = 0.5  # [m at scale 1] a scan is registered from more than one start where they lie this far apart,
 # and the one with the most points matched is kept
-SWAY_DEG = 0.5  # [deg] `refine: auto` runs the second pass when the odometry's rotation over a sweep changes by
-# more than this from one sweep to the next (median): a walker's or a hand's sway (0.76-2.05 deg on the simulated
-# walkers), not a car's steady motion (0.09-0.17 deg), on which the pass costs accuracy (docs/benchmarks.md)
 
 
 def refine_poses(
@@ -152,19 +150,10 @@ def reoptimized(
     return graph, measured, graph.optimize(estimate_odometry_noise)
 
 
-def sway_deg(poses: np.ndarray) -> float:
-    """How much the sensor's rotation over a sweep changes from one sweep to the next [deg], median over the scans'
-    poses (F, 4, 4), T_world_sensor in order: 0 for fewer than three."""
-    if len(poses) < 3:
-        return 0.0
-    motions = np.linalg.inv(poses[:-1]) @ poses[1:]
-    changes = np.swapaxes(motions[:-1, :3, :3], 1, 2) @ motions[1:, :3, :3]
-    return float(np.degrees(np.median(rotation_angle(changes))))
-
-
 def pays(setting: bool | str, odometry_poses: np.ndarray) -> bool:
     """Whether the second pass runs: `setting` (the configuration's `refine`) where it is a bool; for "auto", where
-    the odometry's poses (F, 4, 4) sway (`sway_deg` above SWAY_DEG)."""
+    the odometry's poses (F, 4, 4) sway (`sway_deg` above SWAY_DEG; on a car's steady motion the pass costs
+    accuracy, docs/benchmarks.md)."""
     return setting if isinstance(setting, bool) else sway_deg(odometry_poses) > SWAY_DEG
 
 

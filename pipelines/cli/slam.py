@@ -61,9 +61,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--refine", action=argparse.BooleanOptionalAction, help="a second pass: every scan "
                         "deskewed again, registered onto the loop-corrected map (default: the config's, auto: where "
                         "the sensor sways, as walking or handheld)")  # fmt: skip
-    parser.add_argument("--sweep-times", choices=["none", "clockwise", "counterclockwise"], help="clouds without "
-                        "per-point times: raw sweeps of a spinning LiDAR turning this way seen from above get times "
-                        "from the azimuth (default: the config's, none: taken as deskewed)")  # fmt: skip
+    parser.add_argument("--sweep-times", choices=["auto", "none", "clockwise", "counterclockwise"], help="clouds "
+                        "without per-point times: raw sweeps of a spinning LiDAR turning this way seen from above get "
+                        "times from the azimuth; none: taken as deskewed; auto: told from the first 300 scans "
+                        "(default: the config's, auto)")  # fmt: skip
     parser.add_argument("--map-voxel", type=float, default=0.2, help="voxel size of map.ply [m] (default 0.2)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     batch = parser.add_argument_group("batch (several inputs)")

@@ -6,7 +6,8 @@ from pipelines.simulation import simulate_sequence
 from sandro_core.geometry import rotation_angle
 from sandro_slam import SlamConfig
 from sandro_slam.keyframes import Keyframe, submap_points
-from sandro_slam.refine import SWAY_DEG, pays, refine_poses, sway_deg
+from sandro_slam.refine import pays, refine_poses
+from sandro_slam.sway import SWAY_DEG, sway_deg
 
 
 def _exact_map() -> tuple[list, np.ndarray, list[Keyframe], SlamConfig]:

@@ -7,9 +7,10 @@ from pipelines.evaluation import ate
 from pipelines.simulation import simulate_sequence
 from sandro_slam import OfflineSlam, SlamConfig
 from sandro_slam.scan import Scan
-from sandro_slam.sweep_times import azimuth_times, sweep_period, with_azimuth_times
+from sandro_slam.sweep_times import azimuth_times, detected_rotation, sweep_period, with_azimuth_times
 
 FRAMES = 120  # of the simulated drive, from rest through its first corners; one clockwise sweep every 0.1 s
+TEST_FRAMES = 70  # of them for `detected_rotation` alone: 20 residuals
 
 
 def test_azimuth_times_start_behind_and_turn_once_per_period():
@@ -43,10 +44,15 @@ def test_raw_sweeps_without_times_are_deskewed_with_the_direction_set():
     sequence = simulate_sequence(seed=0, frames=FRAMES)
     frames = [Scan(scan.timestamp, scan.points, np.empty(0)) for scan in map(sequence.frame, range(FRAMES))]
     stamps = np.array([frame.timestamp for frame in frames])
-    errors = {}
-    for sweep_times in ("none", "clockwise", "counterclockwise"):
+    errors, poses = {}, {}
+    for sweep_times in ("none", "clockwise", "counterclockwise", "auto"):
         result = _run(frames, sweep_times)
-        assert result.config.sweep_times == sweep_times
+        poses[sweep_times] = result.odometry_poses
+        if sweep_times == "auto":  # told from the scans: as set by hand (KISS-ICP's threads add up in any order)
+            assert result.config.sweep_times == "clockwise" and result.timings["sweep_test"] > 0.0
+            np.testing.assert_allclose(poses["auto"], poses["clockwise"], atol=1e-6)
+            continue
+        assert result.config.sweep_times == sweep_times and "sweep_test" not in result.timings
         # Poses refer to the sweep's last point once it is deskewed; a raw sweep registered as it is puts its pose
         # near the middle of the sweep.
         shift = result.timestamps - stamps
@@ -57,3 +63,25 @@ def test_raw_sweeps_without_times_are_deskewed_with_the_direction_set():
             assert np.all((shift > 0.09) & (shift < 0.1))
         errors[sweep_times] = ate(result.odometry_poses, sequence.poses_at(stamps + shift))
     assert errors["clockwise"] < 0.3 * min(errors["none"], errors["counterclockwise"])
+
+
+@pytest.fixture(scope="module")
+def drive():
+    return simulate_sequence(seed=0, frames=TEST_FRAMES)
+
+
+def test_raw_sweeps_are_told_by_the_direction_that_deskews_them(drive):
+    raw = [drive.frame(index).points for index in range(TEST_FRAMES)]
+    odometry = SlamConfig().resolved(1.0).odometry
+    assert detected_rotation(raw, odometry, 0.1) == "clockwise"
+    mirrored = [points * [1.0, -1.0, 1.0] for points in raw]  # the same drive seen by a sensor turning the other way
+    assert detected_rotation(mirrored, odometry, 0.1) == "counterclockwise"
+
+
+def test_deskewed_clouds_and_scans_with_times_get_no_azimuth_times(drive):
+    deskewed = [drive.deskewed(index)[0].points for index in range(TEST_FRAMES)]
+    assert detected_rotation(deskewed, SlamConfig().resolved(1.0).odometry, 0.1) is None
+    config = SlamConfig(scale=1.0)
+    config.loops.in_background = False
+    timed = OfflineSlam(config).run(drive.frame(index) for index in range(40))
+    assert timed.config.sweep_times == "none" and "sweep_test" not in timed.timings
