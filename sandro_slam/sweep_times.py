@@ -20,7 +20,7 @@ from kiss_icp.config.parser import KISSConfig
 from kiss_icp.kiss_icp import KissICP
 from scipy.spatial import cKDTree
 
-from sandro_core.geometry import transform_points
+from sandro_core.geometry import rotation_angle, transform_points
 from sandro_slam.scan import Scan
 from sandro_slam.sway import SWAY_DEG, sway_deg
 
@@ -33,7 +33,9 @@ TEST_POINTS = 32768  # a denser scan is thinned to every k-th point for the test
 # told raw from deskewed as all points did, in two thirds of the time)
 TEST_WARMUP = 10  # scans each of its runs registers before their residuals count
 TEST_STRIDE = 3  # the residual of every third scan after them counts
-MIN_TEST_SCANS = 10  # residuals below which the test does not judge
+MIN_TEST_SCANS = 10  # residuals of a moving sensor below which the test does not judge
+MOVING_VOXELS = 0.1  # a scan's residual counts where the sensor moved more than this many odometry voxels over the
+MOVING_DEG = 0.5  # sweep before, or turned more than this [deg]: standing still, deskewing changes nothing
 MIN_ASYMMETRY = 0.15  # share of scans one direction deskews better than the plain run less the other direction's
 # share, from which the scans are raw sweeps: 0.27-0.78 on raw sweeps of cars, at most 0.04 on deskewed clouds and
 # on raw sweeps of a Livox-Avia-like rosette, whose order is no azimuth's (docs/benchmarks.md)
@@ -65,7 +67,8 @@ def sweep_period(stamps: Sequence[float]) -> float:
 def detected_rotation(scans: Sequence[np.ndarray], odometry: KISSConfig, period: float) -> Rotation | None:
     """The turning direction whose azimuth times deskew `scans` ((N, 3) points each in the sensor frame, without
     per-point times, in order, one every `period` [s]) where they look like raw sweeps of a spinning sensor that does
-    not sway; None where they look deskewed, where the sensor sways, or with fewer than MIN_TEST_SCANS residuals.
+    not sway; None where they look deskewed, where the sensor sways, or with fewer than MIN_TEST_SCANS residuals
+    of a moving sensor.
 
     KISS-ICP (`odometry`) runs over the scans as they are; where its poses sway (`sway_deg` above SWAY_DEG: a
     walker, a hand; judged after SWAY_SCANS scans already) None. Then two more runs, the scans deskewed with
@@ -73,22 +76,33 @@ def detected_rotation(scans: Sequence[np.ndarray], odometry: KISSConfig, period:
     registered points to the nearest point of its map before the scan. A direction is taken where the share of
     scans it deskews better than the plain run exceeds the other direction's by MIN_ASYMMETRY: on deskewed clouds
     both directions make most scans worse, about as often; on raw sweeps the right one makes most better and the
-    wrong one few."""
+    wrong one few. Only the residuals of scans over which the sensor moved count (`_moving`)."""
     plain = _ResidualRun(odometry, period, None)
     for index, points in enumerate(scans):
         plain.add(points)
         if index + 1 == SWAY_SCANS and sway_deg(plain.poses) > SWAY_DEG:
             return None
-    if np.count_nonzero(np.isfinite(plain.residuals)) < MIN_TEST_SCANS or sway_deg(plain.poses) > SWAY_DEG:
+    moving = _moving(plain.poses, odometry.mapping.voxel_size)[plain.measured] & np.isfinite(plain.residuals)
+    if np.count_nonzero(moving) < MIN_TEST_SCANS or sway_deg(plain.poses) > SWAY_DEG:
         return None
     shares = {}
     for rotation in ("clockwise", "counterclockwise"):
         run = _ResidualRun(odometry, period, rotation)
         for points in scans:
             run.add(points)
-        shares[rotation] = float(np.mean(run.residuals < plain.residuals))
+        shares[rotation] = float(np.mean(run.residuals[moving] < plain.residuals[moving]))
     better = max(shares, key=shares.get)
     return better if 2.0 * shares[better] - sum(shares.values()) >= MIN_ASYMMETRY else None
+
+
+def _moving(poses: np.ndarray, voxel: float) -> np.ndarray:
+    """(F,) whether the sensor moved over each sweep, poses (F, 4, 4) T_world_sensor: more than MOVING_VOXELS x
+    `voxel` [m] or MOVING_DEG since the pose before (the first: False)."""
+    motions = np.linalg.inv(poses[:-1]) @ poses[1:]
+    moved = (np.linalg.norm(motions[:, :3, 3], axis=1) > MOVING_VOXELS * voxel) | (
+        rotation_angle(motions[:, :3, :3]) > np.radians(MOVING_DEG)
+    )
+    return np.concatenate([[False], moved])
 
 
 class _ResidualRun:
@@ -110,6 +124,11 @@ class _ResidualRun:
     @property
     def residuals(self) -> np.ndarray:
         return np.asarray(self._residuals)
+
+    @property
+    def measured(self) -> np.ndarray:
+        """The indices of the scans `residuals` belong to."""
+        return np.arange(TEST_WARMUP, len(self._poses), TEST_STRIDE)[: len(self._residuals)]
 
     def add(self, points: np.ndarray) -> None:
         """Register the next scan, (N, 3) points in its sensor frame (every k-th of them: at most TEST_POINTS)."""

@@ -7,7 +7,7 @@ from pipelines.evaluation import ate
 from pipelines.simulation import simulate_sequence
 from sandro_slam import OfflineSlam, SlamConfig
 from sandro_slam.scan import Scan
-from sandro_slam.sweep_times import azimuth_times, detected_rotation, sweep_period, with_azimuth_times
+from sandro_slam.sweep_times import _moving, azimuth_times, detected_rotation, sweep_period, with_azimuth_times
 
 FRAMES = 120  # of the simulated drive, from rest through its first corners; one clockwise sweep every 0.1 s
 TEST_FRAMES = 70  # of them for `detected_rotation` alone: 20 residuals
@@ -27,6 +27,15 @@ def test_scans_with_times_or_without_a_rotation_stay_as_they_are():
     plain = Scan(1.0, points, np.empty(0))
     assert with_azimuth_times(plain, 0.1, None) is plain
     assert len(with_azimuth_times(plain, 0.1, "clockwise").times) == 10
+
+
+def test_only_sweeps_over_which_the_sensor_moved_or_turned_count():
+    poses = np.repeat(np.eye(4)[None], 6, axis=0)
+    poses[3:, 0, 3] = [0.2, 0.2, 0.2]  # a step of 0.2 voxels into the fourth pose, then standing
+    turned = np.array([[np.cos(0.02), -np.sin(0.02)], [np.sin(0.02), np.cos(0.02)]])  # 1.1 deg
+    poses[5, :2, :2] = turned
+    np.testing.assert_array_equal(_moving(poses, voxel=1.0), [False, False, False, True, False, True])
+    assert not _moving(poses, voxel=3.0)[3]  # 0.2 m is no move at a 3 m voxel
 
 
 def test_the_sweep_period_is_the_median_stamp_spacing():
