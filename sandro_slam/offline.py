@@ -98,7 +98,7 @@ class OfflineSlam:
             head, sweep_test = _told_sweep_times(config, head, scans)
         rotation = _sweep_rotation(config)
         if rotation is not None:
-            period = sweep_period([scan.timestamp for _, scan in head if len(scan.points)][:SCANS])
+            period = _head_period(head)
             head = [(index, with_azimuth_times(scan, period, rotation)) for index, scan in head]
             scans = ((index, with_azimuth_times(scan, period, rotation)) for index, scan in scans)
         policy = config.graph.estimate_odometry_noise
@@ -246,12 +246,16 @@ def _told_sweep_times(
         config.sweep_times = "none"
         return head, None
     head = head + _first_scans(scans, TEST_SCANS - sum(len(scan.points) > 0 for _, scan in head))
-    clouds = [scan for _, scan in head if len(scan.points)]
-    period = sweep_period([scan.timestamp for scan in clouds[:SCANS]])
+    clouds = [scan.points for _, scan in head if len(scan.points)][:TEST_SCANS]
     start = time.perf_counter()
-    rotation = detected_rotation([scan.points for scan in clouds[:TEST_SCANS]], config.odometry, period)
+    rotation = detected_rotation(clouds, config.odometry, _head_period(head))
     config.sweep_times = rotation or "none"
     return head, time.perf_counter() - start
+
+
+def _head_period(head: list[tuple[int, Scan]]) -> float:
+    """The sweep period [s] of the scans read ahead: from the stamps of the first SCANS with points."""
+    return sweep_period([scan.timestamp for _, scan in head if len(scan.points)][:SCANS])
 
 
 def _sweep_rotation(config: SlamConfig) -> Rotation | None:
@@ -262,7 +266,7 @@ def _sweep_rotation(config: SlamConfig) -> Rotation | None:
 def _first_scans(scans: Iterator[tuple[int, Scan]], count: int = SCANS) -> list[tuple[int, Scan]]:
     """Items of `scans` up to the `count`-th that has points (all of them if fewer)."""
     head, with_points = [], 0
-    for item in scans if count > 0 else ():
+    for item in scans:
         head.append(item)
         with_points += len(item[1].points) > 0
         if with_points >= count:
