@@ -3,6 +3,8 @@ error of one pose, and ground truth matched to a SLAM result's frames."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 
 from sandro_core.geometry import interpolate_poses, rigid_fit, rotation_angle
@@ -28,6 +30,13 @@ def ate(estimate: np.ndarray, reference: np.ndarray) -> float:
         )
     aligned = align_se3(estimate, reference) @ estimate
     return float(np.sqrt(np.mean(np.sum((aligned[:, :3, 3] - reference[:, :3, 3]) ** 2, axis=1))))
+
+
+def sweep_end_stamps(frames: Iterable) -> np.ndarray:
+    """(F,) [s] the times KISS-ICP's poses (and KISS-SLAM's) refer to, of frames (timestamp, points, per-point
+    times): each sweep's latest point, where KISS-ICP deskews to (the stamp for frames without times). sandro-slam's
+    refer to the middle of the sweep (`SlamResult.timestamps`)."""
+    return np.array([stamp + (float(np.max(times)) if len(times) else 0.0) for stamp, _, times in frames])
 
 
 def rpe(estimate: np.ndarray, reference: np.ndarray, delta: int = 10) -> float:

@@ -23,10 +23,11 @@ class Frontend:
     """Turns scans into odometry poses (KISS-ICP, or `given` poses of another front end), cuts the trajectory into
     keyframes and hands each completed keyframe to the loop closer.
 
-    After `finish`: `timestamps` (the time each pose refers to: with KISS-ICP stamp + latest per-point time, where
-    it deskews to; with given poses the stamp), `poses` (T_world_sensor), `keyframe_of_frame`, `keyframes`, and
-    `unmatched`: the indices of the scans added that the given poses do not cover. `stopwatch` adds up wall
-    seconds of "odometry" and "loop_closure" (the keyframe work done in this process).
+    After `finish`: `timestamps` (the time each pose refers to: with KISS-ICP the stamp + the middle of the first
+    and last per-point time, where the scans are deskewed to; with given poses the stamp), `poses`
+    (T_world_sensor), `keyframe_of_frame`, `keyframes`, and `unmatched`: the indices of the scans added that the
+    given poses do not cover. `stopwatch` adds up wall seconds of "odometry" and "loop_closure" (the keyframe work
+    done in this process).
     """
 
     def __init__(

@@ -28,8 +28,8 @@ from sandro_slam.timing import Stopwatch
 class SlamResult:
     """Poses are T_world_sensor (4x4) per processed frame; the world frame is the first scan's."""
 
-    timestamps: np.ndarray  # (F,) [s] the time each pose refers to: stamp + latest per-point time (KISS-ICP
-    # deskews to the latest point), the stamp itself for frames without per-point times
+    timestamps: np.ndarray  # (F,) [s] the time each pose refers to: stamp + the middle of the first and last
+    # per-point time (`odometry.deskew_to_middle`), the stamp itself for frames without per-point times
     poses: np.ndarray  # (F, 4, 4) optimised: every scan moved with its keyframe
     odometry_poses: np.ndarray  # (F, 4, 4) the odometry alone: KISS-ICP's, its first scans re-registered
     # (reregister_start), or the poses given

@@ -23,7 +23,7 @@ from sandro_slam.factors import odometry_covariance
 from sandro_slam.keyframes import Keyframe, keyframe_frame, submap_points
 from sandro_slam.loop_registration import icp_registration
 from sandro_slam.module import LoopClosure
-from sandro_slam.odometry import GaussianMapRefiner
+from sandro_slam.odometry import GaussianMapRefiner, deskew_to_middle
 from sandro_slam.pose_graph import PoseGraph
 from sandro_slam.scan import Scan
 from sandro_slam.sway import SWAY_DEG, sway_deg
@@ -50,15 +50,15 @@ def refine_poses(
         config: the resolved configuration of the first pass (its odometry settings deskew and voxelise the scans,
             its `odometry_gicp` settings register them, as the odometry's `GaussianMapRefiner`).
 
-    Each scan is deskewed with the motion from the refined pose before it to its own guess (KISS-ICP's
-    convention, to its latest point) and registered with VGICP onto a map of Gaussian voxels of the submaps at
-    their optimised poses, from the first-pass pose moved with the correction of the scan before; where the first
-    pass's motion jumps, from the other starts of `_guesses` too, keeping the registration that matched the most
-    points. When that moved its motion by more than REDESKEW_SHIFT x scale (and less than DISTINCT_GUESS x scale:
-    farther, the pose may be a restart from the first pass's, and its motion from the scan before no motion the
-    sensor made), it is deskewed with the new motion and registered once more. Scans without per-point times are
-    registered as they are. Gaussian voxels, not KISS-ICP's points: the submaps hold one point per submap voxel,
-    and point-to-point ICP onto so sparse a map is pulled by the sampling.
+    Each scan is deskewed with the motion from the refined pose before it to its own guess (into its frame at the
+    middle of the sweep, as in the first pass: `odometry.deskew_to_middle`) and registered with VGICP onto a map of
+    Gaussian voxels of the submaps at their optimised poses, from the first-pass pose moved with the correction of
+    the scan before; where the first pass's motion jumps, from the other starts of `_guesses` too, keeping the
+    registration that matched the most points. When that moved its motion by more than REDESKEW_SHIFT x scale (and
+    less than DISTINCT_GUESS x scale: farther, the pose may be a restart from the first pass's, and its motion from
+    the scan before no motion the sensor made), it is deskewed with the new motion and registered once more. Scans
+    without per-point times are registered as they are. Gaussian voxels, not KISS-ICP's points: the submaps hold one
+    point per submap voxel, and point-to-point ICP onto so sparse a map is pulled by the sampling.
     """
     odometry = KissICP(config.odometry)
     world_map = GaussianMapRefiner(config.odometry_gicp)
@@ -66,7 +66,8 @@ def refine_poses(
     world_map.insert(world_map.prepared(submaps), np.eye(4))
 
     def deskewed(scan: Scan, motion: np.ndarray) -> tuple[np.ndarray, small_gicp.PointCloud]:
-        _, fine = odometry.voxelize(odometry.preprocessor.preprocess(scan.points, scan.times, motion))
+        points = deskew_to_middle(odometry.preprocessor, scan.points, scan.times, motion, config.odometry.data.deskew)
+        _, fine = odometry.voxelize(points)
         return fine, world_map.prepared(fine)
 
     refined, deskewed_scans = np.empty_like(poses), []

@@ -52,7 +52,7 @@ from kiss_icp.kiss_icp import KissICP
 from pipelines.bench.common import default_out_dir, parse_list, write_csv
 from pipelines.bench.kiss_slam import kiss_slam_available, run_kiss_slam
 from pipelines.bench.slam import loop_errors, loops_against_truth, result_keyframe_truths, submap_frames
-from pipelines.evaluation import ate
+from pipelines.evaluation import ate, sweep_end_stamps
 from pipelines.io.trajectory import write_tum
 from pipelines.plots import plot_suite, plot_trajectories
 from pipelines.simulation.suite import HELD_OUT, SUITE, SuiteSequence, cached_frames
@@ -172,8 +172,11 @@ def evaluate_sequence(
     registrable = overlapping(result, truth, pairs)
     row["floor_loops_overlapping"] = len(registrable)
     row["ate_overlap_floor"] = ate(perfect_loop_floor(result, truth, registrable), truth)
+    end_stamps = sweep_end_stamps(frames)  # the baselines' poses refer to the sweeps' ends, sandro-slam's to middles
+    truth_at_ends = spec.truth(end_stamps)
+    baselines = {"KISS-ICP", "KISS-SLAM"}
     for name, poses in trajectories.items():
-        row[f"ate_{_key(name)}"] = ate(poses, truth)
+        row[f"ate_{_key(name)}"] = ate(poses, truth_at_ends if name in baselines else truth)
     row["ate_odometry"] = ate(result.odometry_poses, truth)
     corrections = submap_frames(result, truth)
     row["ate_perfect_registration_floor"] = ate(perfect_loop_floor(result, truth, pairs, corrections), truth)
@@ -183,7 +186,7 @@ def evaluate_sequence(
     for measured in ("ate_sandro_slam", "loops_wrong_kept", "loops_real_rejected"):  # what sandro-slam gives by default
         row[f"default_{measured}"] = row.get(_refined(measured) if row["refined_by_default"] else measured, 0)
     for name, poses in {"ground truth": truth, **trajectories}.items():
-        write_tum(out / f"{_key(name)}.tum", result.timestamps, poses)
+        write_tum(out / f"{_key(name)}.tum", end_stamps if name in baselines else result.timestamps, poses)
     submap_errors = loop_errors(result, truth, corrections)
     write_csv(
         out / "loops.csv",
