@@ -398,8 +398,7 @@ def deskew_to_middle(
     deskewed = preprocessor.preprocess(points, times, motion)
     if not (deskew and len(times)):
         return deskewed
-    middle_end = motion_power(motion, 0.5)  # T_middle_end at constant velocity
-    return deskewed @ middle_end[:3, :3].T + middle_end[:3, 3]
+    return transform_points(motion_power(motion, 0.5), deskewed)  # T_middle_end at constant velocity
 
 
 def sweep_middle(times: np.ndarray) -> float:
