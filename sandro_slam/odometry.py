@@ -96,13 +96,13 @@ class ScanOdometry(KissICP):
     deskewed scan it voxelised for its map (`map_points`, at half its voxel size, in the scan frame): the keyframe
     submaps take it rather than voxelising the scan again.
 
-    KISS-ICP deskews a scan with the motion of the scan before (constant velocity). Where the motion changes from
-    sweep to sweep (a car turning into a sharp corner, the sway of a walker, a hand turning a narrow-view sensor)
-    the scan stays bent by the difference, and so does its registered pose. When the registered rotation over the
-    sweep differs from the predicted one by more than REDESKEW_DEG, the scan is deskewed again with its own
-    registered and refined motion (rotation and translation), registered from there and refined again. About the
-    middle of the sweep (`deskew_to_middle`) a wrong motion moves the pose only to second order, so deskewing with
-    the registered translation does not feed its error back (deskewed to the sweep's end, it built up along lanes).
+    KISS-ICP deskews a scan with the motion of the scan before (constant velocity). Where the rotation rate
+    changes within a sweep (a car turning into a sharp corner, the yaw sway of a walker) the scan stays bent by
+    the difference, and so does its registered pose. When the registered rotation over the sweep differs from the
+    predicted one by more than REDESKEW_DEG, the scan is deskewed again with the registered rotation (the
+    translation stays the predicted one: along a corridor or a lane of pillars the registered translation is
+    the least certain part, and deskewing with it fed that back) and registered again from where the first
+    registration ended.
 
     The kernel (a third of the correspondence distance) is never below one voxel: on a straight, steady drive
     KISS-ICP's adaptive threshold shrinks until a sharp corner's first scans, turned 5.7 deg beyond the
@@ -131,12 +131,12 @@ class ScanOdometry(KissICP):
         sigma = max(self.adaptive_threshold.get_threshold(), self.config.mapping.voxel_size)
         prediction = self.last_pose @ motion_power(self.last_delta, sweeps)
         scan = self._registered(frame, timestamps, self.last_delta, prediction, sigma)
-        turn = rotation_angle(self.last_delta[:3, :3].T @ self._motion(scan.pose, sweeps)[:3, :3])
+        motion = motion_power(np.linalg.inv(self.last_pose) @ scan.pose, 1.0 / sweeps)
         deskews = len(timestamps) > 0 and self.config.data.deskew
+        if deskews and rotation_angle(self.last_delta[:3, :3].T @ motion[:3, :3]) > np.radians(REDESKEW_DEG):
+            motion[:3, 3] = self.last_delta[:3, 3]
+            scan = self._registered(frame, timestamps, motion, scan.pose, sigma)
         scan = self._refined(scan)
-        if deskews and turn > np.radians(REDESKEW_DEG):
-            own_motion = self._motion(scan.pose, sweeps)
-            scan = self._refined(self._registered(frame, timestamps, own_motion, scan.pose, sigma))
         if self.watch.flags(prediction, scan.pose) and deskews:  # every pose joins the watch's history
             scan = self._sweep_searched(frame, timestamps, scan, sigma)
         if self.refiner is not None:
@@ -144,13 +144,9 @@ class ScanOdometry(KissICP):
         pose, self.map_points = scan.pose, scan.map_points
         self.adaptive_threshold.update_model_deviation(np.linalg.inv(prediction) @ pose)
         self.local_map.update(self.map_points, pose)
-        self.last_delta = self._motion(pose, sweeps)
+        self.last_delta = motion_power(np.linalg.inv(self.last_pose) @ pose, 1.0 / sweeps)
         self.last_pose = pose
         return scan.deskewed, scan.source
-
-    def _motion(self, pose: np.ndarray, sweeps: int) -> np.ndarray:
-        """One sweep's motion (4x4) from the last pose to `pose` (T_world_sensor), `sweeps` sweeps later."""
-        return motion_power(np.linalg.inv(self.last_pose) @ pose, 1.0 / sweeps)
 
     def _registered(
         self,
