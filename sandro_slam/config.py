@@ -34,6 +34,14 @@ class OdometryGicpConfig(StrictModel):
     source_voxel: float | None = scaled(0.5, "voxel [m] the scan is downsampled to before its covariances")
     max_distance: float | None = scaled(3.0, "correspondence distance [m]")
     max_iterations: int = Field(20, ge=1, description="Gauss-Newton iterations per scan")
+    motion_prior: float = Field(
+        0.03,
+        ge=0.0,
+        lt=1.0,
+        description="translation directions whose information (rotation marginalised) is below this share of the "
+        "largest follow the constant-velocity prediction, with a prior of that strength (0: none; "
+        "`odometry.with_motion_prior`)",
+    )
 
 
 class KeyframeConfig(StrictModel):
