@@ -421,8 +421,11 @@ def with_motion_prior(pose: np.ndarray, prediction: np.ndarray, hessian: np.ndar
     prior = np.zeros((6, 6))
     prior[3:, 3:] = share * strengths[-1] * weak @ weak.T
     correction = gtsam.Pose3.Logmap(gtsam.Pose3(np.linalg.inv(prediction) @ pose))  # pose = prediction Exp(.)
-    fused = np.linalg.solve(hessian + prior, hessian @ correction)
-    return prediction @ gtsam.Pose3.Expmap(fused).matrix()
+    fused = prediction @ gtsam.Pose3.Expmap(np.linalg.solve(hessian + prior, hessian @ correction)).matrix()
+    # The product's rounding would grow from scan to scan through the prediction until KISS-ICP (Sophus) refuses the
+    # rotation as not orthogonal: the nearest rotation instead.
+    fused[:3, :3] = gtsam.Rot3.ClosestTo(fused[:3, :3]).matrix()
+    return fused
 
 
 def deskew_to_middle(
