@@ -143,7 +143,7 @@ class ScanOdometry(KissICP):
         sigma = max(self.adaptive_threshold.get_threshold(), self.config.mapping.voxel_size)
         prediction = self.last_pose @ motion_power(self.last_delta, sweeps)
         scan = self._registered(frame, timestamps, self.last_delta, prediction, sigma)
-        motion = motion_power(np.linalg.inv(self.last_pose) @ scan.pose, 1.0 / sweeps)
+        motion = self._motion(scan.pose, sweeps)
         deskews = len(timestamps) > 0 and self.config.data.deskew
         if deskews and rotation_angle(self.last_delta[:3, :3].T @ motion[:3, :3]) > np.radians(REDESKEW_DEG):
             motion[:3, 3] = self.last_delta[:3, 3]
@@ -158,9 +158,13 @@ class ScanOdometry(KissICP):
             self.refiner.insert(scan.gicp_cloud, pose)
         self.adaptive_threshold.update_model_deviation(np.linalg.inv(prediction) @ pose)
         self.local_map.update(self.map_points, pose)
-        self.last_delta = motion_power(np.linalg.inv(self.last_pose) @ pose, 1.0 / sweeps)
+        self.last_delta = self._motion(pose, sweeps)
         self.last_pose = pose
         return scan.deskewed, scan.source
+
+    def _motion(self, pose: np.ndarray, sweeps: int) -> np.ndarray:
+        """One sweep's motion (4x4) from the last pose to `pose` (T_world_sensor), `sweeps` sweeps later."""
+        return motion_power(np.linalg.inv(self.last_pose) @ pose, 1.0 / sweeps)
 
     def _registered(
         self,
