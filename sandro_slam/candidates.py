@@ -30,9 +30,11 @@ def radius_candidates(
     centres: dict[int, np.ndarray],
     travelled: dict[int, float],
     config: LoopDetectionConfig,
+    limit: int | None = None,
 ) -> list[int]:
     """Keyframes whose submaps' span centres (`span_centres`, current estimate) lie within `radius` metres of
-    `key`'s, at least `exclude_recent` metres of travel back, nearest first, at most `max_candidates`.
+    `key`'s, at least `exclude_recent` metres of travel back, nearest first, at most `limit` (None:
+    `max_candidates`).
 
     Centres rather than anchors: on a stretch driven back the other way, the anchor nearest to the new keyframe
     starts a submap over the stretch the new keyframe has not covered yet."""
@@ -44,7 +46,7 @@ def radius_candidates(
         distance = float(np.linalg.norm(position - here))
         if distance <= config.radius:
             near.append((distance, other))
-    return [other for _, other in sorted(near)[: config.max_candidates]]
+    return [other for _, other in sorted(near)[: config.max_candidates if limit is None else limit]]
 
 
 class PlaceRecognition:

@@ -63,6 +63,18 @@ class LoopDetectionConfig(StrictModel):
     exclude_recent: float | None = scaled(50.0, "skip keyframes fewer than this many metres back", True)
     max_candidates: int = Field(2, ge=1, description="nearest candidates registered per keyframe")
     max_loops_per_keyframe: int = Field(2, ge=1, description="stop registering candidates after this many loops")
+    guided_loops: int = Field(
+        2,
+        ge=0,
+        description="where two of a keyframe's verified loops agree, register up to this many more of its nearest "
+        "radius candidates (the next after the `max_candidates` nearest, and those SANDRO failed on) by ICP alone "
+        "from the pose the first loop predicts (0: none)",
+    )
+    guided_tolerance: float | None = scaled(
+        0.5,
+        "two loops agree, and a guided loop is kept, within this distance [m] (and 2 deg) of the pose the first "
+        "loop predicts",
+    )
     use_map_closures: bool = Field(True, description="add MapClosures place-recognition candidates")
     map_closures_min_inliers: int = Field(5, ge=1, description="ORB inliers a MapClosures candidate needs")
     map_closures_radius: float | None = scaled(30.0, "submap points within this range [m] form its density map")

@@ -120,6 +120,13 @@ def icp_registration(
     return _icp(source_cloud, _with_normals(target, config.icp_voxel), T_target_source, config)
 
 
+def register_from_guess(
+    target: SubmapDescription, source: SubmapDescription, T_target_source: np.ndarray, config: LoopRegistrationConfig
+) -> tuple[np.ndarray, float]:
+    """(T_target_source, overlap) of `register_submaps`' ICP alone on two described submaps, from a guess."""
+    return _icp(source.icp_points, target.icp_points, T_target_source, config)
+
+
 def _with_normals(points: np.ndarray, voxel: float) -> o3d.geometry.PointCloud:
     """`points` (N, 3) at `voxel` [m], with normals as FPFH's (point-to-plane ICP's target side; their signs do
     not matter there)."""

@@ -3,21 +3,30 @@ and `LoopClosureModule`, which also keeps the pose graph itself."""
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import gtsam
 import numpy as np
 
+from sandro_core.geometry import rotation_angle
 from sandro_slam.candidates import PlaceRecognition, RingKeyRecognition, radius_candidates, span_centres
 from sandro_slam.config import SlamConfig
 from sandro_slam.factors import between_factor, odometry_covariance
-from sandro_slam.loop_registration import MIN_SUBMAP_POINTS, SubmapDescription, describe_submap, register_submaps
+from sandro_slam.loop_registration import (
+    MIN_SUBMAP_POINTS,
+    SubmapDescription,
+    describe_submap,
+    register_from_guess,
+    register_submaps,
+)
 from sandro_slam.pose_graph import LoopFactor, PoseGraph
 
 # Submap descriptions kept at once, the most recently used: 1.3-2 MB each at street scale (FPFH keypoints and
 # descriptors, the ICP points with normals, the descriptor tree). One evicted is made again from its submap
 # (about 40 ms) when a later candidate pair needs it.
 MAX_DESCRIPTIONS = 200
+GUIDED_MAX_ANGLE_DEG = 2.0  # two loops agree, and a guided loop is kept, within this rotation of the predicted pose
 
 
 @dataclass
@@ -30,7 +39,8 @@ class LoopClosure:
     covariance: np.ndarray  # 6x6, gtsam Pose3 order [rotation, translation], right perturbation
     inliers: int  # SANDRO inliers among the FPFH matches
     overlap: float  # share of source submap points near the target submap after alignment
-    found_by: str  # its candidate sources joined by "+": "radius", "place_recognition" (MapClosures), "ring_key"
+    found_by: str  # its candidate sources joined by "+": "radius", "place_recognition" (MapClosures), "ring_key";
+    # or "guided": registered from the pose the keyframe's agreeing loops predict (`LoopDetectionConfig.guided_loops`)
     time_s: float  # registration and verification time
     factor: LoopFactor | None = None  # its factor in a LoopClosureModule's graph (None for a LoopCloser's loops)
 
@@ -119,10 +129,14 @@ class LoopCloser:
         return {**self.__dict__, "_descriptions": {}}
 
     def _close_loops(self, key: int, points: np.ndarray) -> list[LoopClosure]:
+        loops = self.config.loops
         found: dict[int, list[str]] = {}
         centres = span_centres({k: self._estimates[k][:3, 3] for k in self._travelled})
         with_submaps = {k: centres[k] for k in self._submaps}
-        for other in radius_candidates(key, with_submaps, self._travelled, self.config.loops):
+        nearest = radius_candidates(
+            key, with_submaps, self._travelled, loops, loops.max_candidates + loops.guided_loops
+        )
+        for other in nearest[: loops.max_candidates]:
             found.setdefault(other, []).append("radius")
         if self._place_recognition is not None:
             for other in self._place_recognition.candidates(key, points, self._travelled):
@@ -133,14 +147,58 @@ class LoopCloser:
                 found.setdefault(other, []).append("ring_key")
         closed = []
         for other, sources in found.items():
-            if len(closed) >= self.config.loops.max_loops_per_keyframe:
+            if len(closed) >= loops.max_loops_per_keyframe:
                 break
             self.attempts += 1
             pair = register_submaps(self._description(other), self._description(key), self.config.registration)
             if pair.accepted and self._within_drift(other, key, pair.T_target_source):
                 closed.append(LoopClosure(key, other, pair.T_target_source, pair.covariance, pair.inliers,
                                           pair.overlap, "+".join(sources), pair.time_s))  # fmt: skip
+        if len(closed) >= 2 and any(self._agrees(closed[0], other) for other in closed[1:]):
+            closed += self._guided_loops(closed, nearest)
         return closed
+
+    def _predicted(self, loop: LoopClosure, target: int) -> np.ndarray:
+        """T_target_source of `loop`'s source keyframe in keyframe `target`'s frame, through `loop`'s target and the
+        current estimates."""
+        T_world_source = self._estimates[loop.target_key] @ loop.T_target_source
+        return np.linalg.solve(self._estimates[target], T_world_source)
+
+    def _near(self, T_a: np.ndarray, T_b: np.ndarray) -> bool:
+        """Whether two transforms differ by at most `guided_tolerance` [m] and `GUIDED_MAX_ANGLE_DEG`."""
+        step = np.linalg.solve(T_a, T_b)
+        return bool(
+            np.linalg.norm(step[:3, 3]) <= self.config.loops.guided_tolerance
+            and np.degrees(rotation_angle(step[:3, :3])) <= GUIDED_MAX_ANGLE_DEG
+        )
+
+    def _agrees(self, first: LoopClosure, other: LoopClosure) -> bool:
+        """Whether two loops of one keyframe place it alike through the current estimates."""
+        return self._near(self._predicted(first, other.target_key), other.T_target_source)
+
+    def _guided_loops(self, closed: list[LoopClosure], nearest: list[int]) -> list[LoopClosure]:
+        """Loops to up to `guided_loops` more of the `nearest` radius candidates, registered by ICP alone from the
+        pose the first verified loop predicts, kept at `min_overlap` within the guided tolerance of that pose.
+
+        Only where two loops agree (the caller checks): one wrong loop would place the keyframe wrongly for
+        its neighbours too, and their loops, alike wrong, would agree with it and with one another. Each carries
+        the first loop's covariance and inliers."""
+        first = closed[0]
+        source = self._description(first.source_key)
+        guided = []
+        for other in nearest:
+            if len(guided) >= self.config.loops.guided_loops:
+                break
+            if any(loop.target_key == other for loop in closed):
+                continue
+            start = time.perf_counter()
+            self.attempts += 1
+            guess = self._predicted(first, other)
+            T, overlap = register_from_guess(self._description(other), source, guess, self.config.registration)
+            if overlap >= self.config.registration.min_overlap and self._near(guess, T):
+                guided.append(LoopClosure(first.source_key, other, T, first.covariance, first.inliers, overlap,
+                                          "guided", time.perf_counter() - start))  # fmt: skip
+        return guided
 
     def _within_drift(self, target: int, source: int, T_target_source: np.ndarray) -> bool:
         """Whether the loop places `source` within `radius` + `max_drift` x the path between the two keyframes of
