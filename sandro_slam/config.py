@@ -71,9 +71,9 @@ class LoopDetectionConfig(StrictModel):
         "from the pose the first loop predicts (0: none)",
     )
     guided_tolerance: float | None = scaled(
-        0.5,
-        "two loops agree, and a guided loop is kept, within this distance [m] (and 2 deg) of the pose the first "
-        "loop predicts",
+        0.1,
+        "two loops agree within this distance [m] (and 2 deg) of the pose the first predicts; a guided loop is kept "
+        "within this distance (and 0.1 deg) of it",
     )
     use_map_closures: bool = Field(True, description="add MapClosures place-recognition candidates")
     map_closures_min_inliers: int = Field(5, ge=1, description="ORB inliers a MapClosures candidate needs")

@@ -26,7 +26,8 @@ from sandro_slam.pose_graph import LoopFactor, PoseGraph
 # descriptors, the ICP points with normals, the descriptor tree). One evicted is made again from its submap
 # (about 40 ms) when a later candidate pair needs it.
 MAX_DESCRIPTIONS = 200
-GUIDED_MAX_ANGLE_DEG = 2.0  # two loops agree, and a guided loop is kept, within this rotation of the predicted pose
+AGREEMENT_MAX_ANGLE_DEG = 2.0  # two loops agree within this rotation of the pose the first predicts
+GUIDED_MAX_ANGLE_DEG = 0.1  # a guided loop is kept within this rotation of the pose the first loop predicts
 
 
 @dataclass
@@ -164,17 +165,17 @@ class LoopCloser:
         T_world_source = self._estimates[loop.target_key] @ loop.T_target_source
         return np.linalg.solve(self._estimates[target], T_world_source)
 
-    def _near(self, T_a: np.ndarray, T_b: np.ndarray) -> bool:
-        """Whether two transforms differ by at most `guided_tolerance` [m] and `GUIDED_MAX_ANGLE_DEG`."""
+    def _near(self, T_a: np.ndarray, T_b: np.ndarray, max_angle_deg: float) -> bool:
+        """Whether two transforms differ by at most `guided_tolerance` [m] and `max_angle_deg`."""
         step = np.linalg.solve(T_a, T_b)
         return bool(
             np.linalg.norm(step[:3, 3]) <= self.config.loops.guided_tolerance
-            and np.degrees(rotation_angle(step[:3, :3])) <= GUIDED_MAX_ANGLE_DEG
+            and np.degrees(rotation_angle(step[:3, :3])) <= max_angle_deg
         )
 
     def _agrees(self, first: LoopClosure, other: LoopClosure) -> bool:
         """Whether two loops of one keyframe place it alike through the current estimates."""
-        return self._near(self._predicted(first, other.target_key), other.T_target_source)
+        return self._near(self._predicted(first, other.target_key), other.T_target_source, AGREEMENT_MAX_ANGLE_DEG)
 
     def _guided_loops(self, closed: list[LoopClosure], nearest: list[int]) -> list[LoopClosure]:
         """Loops to up to `guided_loops` more of the `nearest` radius candidates, registered by ICP alone from the
@@ -195,7 +196,7 @@ class LoopCloser:
             self.attempts += 1
             guess = self._predicted(first, other)
             T, overlap = register_from_guess(self._description(other), source, guess, self.config.registration)
-            if overlap >= self.config.registration.min_overlap and self._near(guess, T):
+            if overlap >= self.config.registration.min_overlap and self._near(guess, T, GUIDED_MAX_ANGLE_DEG):
                 guided.append(LoopClosure(first.source_key, other, T, first.covariance, first.inliers, overlap,
                                           "guided", time.perf_counter() - start))  # fmt: skip
         return guided

@@ -3,6 +3,7 @@ estimate than the drift bound is dropped as an alias."""
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from pipelines.simulation import simulate_sequence
 from sandro_core.geometry import transform_points
@@ -48,31 +49,30 @@ def test_a_loop_beyond_the_drift_bound_is_dropped(place):
     assert _revisit(place, estimate_x=40.0) == []  # 40 m from where the loop puts it: more than 34 m
 
 
-def _street_revisit(place: np.ndarray, shift_estimate_of_1: float = 0.0) -> list:
+def _street_revisit(place: np.ndarray, estimate_error: tuple[int, np.ndarray] | None = None) -> list:
     """Keyframes 0-3 at x = 0, 4, 8, 12 m, each with the place in its frame; one elsewhere; then keyframe 5 back at x
-    = 0 after 60 m more. Keyframe 1's estimate is `shift_estimate_of_1` [m] off along y. The loops keyframe 5 closes:
-    SANDRO's with its two nearest candidates (2, 1), and guided ones."""
+    = 0 after 60 m more. `estimate_error`: (key, T) moves that keyframe's estimate by T. The loops keyframe 5
+    closes: SANDRO's with its two nearest candidates (2, 1), and guided ones."""
     config = SlamConfig()
     config.loops.use_map_closures = False
     config.loops.ring_key_candidates = 0
+    config.loops.guided_loops = 2
     closer = LoopCloser(config)
     for key, x in enumerate([0.0, 4.0, 8.0, 12.0]):
-        estimate = _at(x)
-        estimate[1, 3] = shift_estimate_of_1 if key == 1 else 0.0
+        estimate = _at(x) @ (estimate_error[1] if estimate_error and estimate_error[0] == key else np.eye(4))
         assert closer.add_keyframe(key, estimate, transform_points(np.linalg.inv(_at(x)), place), distance=4.0) == []
     elsewhere = np.random.default_rng(0).uniform([-30, -30, -2], [30, 30, 0], (20000, 3))
     assert closer.add_keyframe(4, _at(-30.0), elsewhere, distance=42.0) == []
     return closer.add_keyframe(5, _at(0.0), place, distance=60.0)
 
 
+def _found(loops: list) -> list[tuple[int, str]]:
+    return [(loop.target_key, loop.found_by) for loop in loops]
+
+
 def test_two_agreeing_loops_guide_loops_to_the_next_candidates(place):
     loops = _street_revisit(place)
-    assert [(loop.target_key, loop.found_by) for loop in loops] == [
-        (2, "radius"),
-        (1, "radius"),
-        (0, "guided"),
-        (3, "guided"),
-    ]
+    assert _found(loops) == [(2, "radius"), (1, "radius"), (0, "guided"), (3, "guided")]
     for loop in loops:
         np.testing.assert_allclose(loop.T_target_source, np.linalg.inv(_at(4.0 * loop.target_key)), atol=0.05)
     assert loops[2].covariance is loops[0].covariance
@@ -81,5 +81,14 @@ def test_two_agreeing_loops_guide_loops_to_the_next_candidates(place):
 def test_loops_that_disagree_guide_none(place):
     # Keyframe 1's estimate 3 m off: its loop places keyframe 5 3 m from where keyframe 2's loop does. One of the two
     # is wrong, or the estimates are; a loop predicted from either could be as wrong.
-    loops = _street_revisit(place, shift_estimate_of_1=3.0)
-    assert [(loop.target_key, loop.found_by) for loop in loops] == [(2, "radius"), (1, "radius")]
+    shifted = np.eye(4)
+    shifted[1, 3] = 3.0
+    assert _found(_street_revisit(place, (1, shifted))) == [(2, "radius"), (1, "radius")]
+
+
+def test_a_guided_loop_that_icp_moves_off_the_prediction_is_dropped(place):
+    # Keyframe 0's estimate turned by 0.5 deg: the pose predicted in its frame is that far off, and ICP, converging
+    # to the true pose, moves it beyond the 0.1 deg a guided loop may differ from its prediction.
+    turned = np.eye(4)
+    turned[:3, :3] = Rotation.from_euler("z", 0.5, degrees=True).as_matrix()
+    assert _found(_street_revisit(place, (0, turned))) == [(2, "radius"), (1, "radius"), (3, "guided")]
