@@ -64,11 +64,12 @@ class LoopDetectionConfig(StrictModel):
     max_candidates: int = Field(2, ge=1, description="nearest candidates registered per keyframe")
     max_loops_per_keyframe: int = Field(2, ge=1, description="stop registering candidates after this many loops")
     guided_loops: int = Field(
-        2,
+        0,
         ge=0,
         description="where two of a keyframe's verified loops agree, register up to this many more of its nearest "
         "radius candidates (the next after the `max_candidates` nearest, and those SANDRO failed on) by ICP alone "
-        "from the pose the first loop predicts (0: none)",
+        "from the pose the first loop predicts (0: none; 2 helps spinning-LiDAR drives back along their way and "
+        "costs others accuracy, docs/benchmarks.md)",
     )
     guided_tolerance: float | None = scaled(
         0.1,
