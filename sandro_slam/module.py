@@ -155,7 +155,7 @@ class LoopCloser:
             if pair.accepted and self._within_drift(other, key, pair.T_target_source):
                 closed.append(LoopClosure(key, other, pair.T_target_source, pair.covariance, pair.inliers,
                                           pair.overlap, "+".join(sources), pair.time_s))  # fmt: skip
-        if len(closed) >= 2 and any(self._agrees(closed[0], other) for other in closed[1:]):
+        if loops.guided_loops and len(closed) >= 2 and any(self._agrees(closed[0], other) for other in closed[1:]):
             closed += self._guided_loops(closed, nearest)
         return closed
 
