@@ -188,6 +188,12 @@ class MergeConfig(StrictModel):
     free_space_voxel: float | None = scaled(0.5, "voxel [m] of the free-space test")
     conflict_loops: int = Field(12, ge=1, description="agreeing loops (most inliers first) the free-space test checks")
     map_voxel: float | None = scaled(0.5, "voxel [m] of the merged map sandro-merge writes")
+    variance_components: bool = Field(
+        True,
+        description="once the loops are decided, scale each session's odometry and loops and the inter-session "
+        "loops by the variance factor their residuals show, relative to the first session's odometry "
+        "(docs/merge.md)",
+    )
 
 
 class SlamConfig(YamlConfig):

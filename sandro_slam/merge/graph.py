@@ -40,6 +40,9 @@ class MergeResult:
         return not self.refused
 
 
+INTER_SESSION = ("inter-session loops", -1)  # the group of every inter-session loop
+
+
 def session_key(session_index: int, key: int) -> int:
     """The merged graph's key of keyframe `key` of session `session_index`."""
     return gtsam.symbol(chr(ord("a") + session_index), key)
@@ -53,10 +56,11 @@ def build_graph(
     loop_submap_noise: bool = False,
 ):
     """The merged graph over the joined sessions: (graph, initial values, known inlier factor indices,
-    [(loop, factor index)] of the inter-session loops). With `loop_submap_noise` the same factors at the same
-    indices, but each loop, the sessions' and the inter-session ones, with its covariance plus the odometry
-    covariance across each of its two keyframes (`factors.widened_loop_covariance`, as `PoseGraph` weighs them)."""
-    graph, values, known = gtsam.NonlinearFactorGraph(), gtsam.Values(), []
+    [(loop, factor index)] of the inter-session loops, each factor's group: `factor_group`, `INTER_SESSION` or
+    None for the prior). With `loop_submap_noise` the same factors at the same indices, but each loop, the
+    sessions' and the inter-session ones, with its covariance plus the odometry covariance across each of its two
+    keyframes (`factors.widened_loop_covariance`, as `PoseGraph` weighs them)."""
+    graph, values, known, groups = gtsam.NonlinearFactorGraph(), gtsam.Values(), [], []
     prior = gtsam.noiseModel.Isotropic.Sigma(6, prior_sigma)
     across = {index: sessions[index].keyframe_odometry_covariances() for index in T_merged} if loop_submap_noise else {}
 
@@ -75,6 +79,7 @@ def build_graph(
         if index == 0:
             first = session_key(0, session.keys[0])
             known.append(graph.size())
+            groups.append(None)
             graph.add(gtsam.PriorFactorPose3(first, values.atPose3(first), prior))
         for edge in session.edges:
             if edge.accepted:
@@ -85,11 +90,13 @@ def build_graph(
                     else covariance(edge.covariance, (index, edge.target), (index, edge.source))
                 )
                 target, source = session_key(index, edge.target), session_key(index, edge.source)
+                groups.append(factor_group(edge.kind, index))
                 graph.add(between_factor(target, source, edge.T_target_source, edge_covariance))
     loop_factors = []
     for loop in loops:
         if loop.voted and loop.target_session in T_merged and loop.source_session in T_merged:
             loop_factors.append((loop, graph.size()))
+            groups.append(INTER_SESSION)
             graph.add(
                 between_factor(
                     session_key(loop.target_session, loop.target_key),
@@ -102,7 +109,13 @@ def build_graph(
                     ),
                 )
             )
-    return graph, values, known, loop_factors
+    return graph, values, known, loop_factors, groups
+
+
+def factor_group(kind: str, session_index: int) -> tuple[str, int]:
+    """The group of a session's factor whose noise the merge estimates (`variance_components`): the session's
+    odometry or its loops (`kind`: "odometry" or a loop's)."""
+    return ("odometry" if kind == "odometry" else "loops", session_index)
 
 
 def accepted_pairs(loops: list[InterSessionLoop], min_loops: int) -> list[tuple[int, int]]:

@@ -12,12 +12,13 @@ from sandro_slam.config import MergeConfig, SlamConfig
 from sandro_slam.loop_registration import MIN_SUBMAP_POINTS, describe_submap
 from sandro_slam.merge.descriptor import place_candidates
 from sandro_slam.merge.free_space import FreeSpace, pair_conflict
-from sandro_slam.merge.graph import MergeResult, accepted_pairs, build_graph, merge_result
+from sandro_slam.merge.graph import MergeResult, accepted_pairs, build_graph, factor_group, merge_result
 from sandro_slam.merge.loops import Descriptions, InterSessionLoop, register_pairs
 from sandro_slam.merge.voting import fits, spanning_transforms, vote
 from sandro_slam.robust_backend import refined, robust_optimize
 from sandro_slam.session import Session
 from sandro_slam.timing import Stopwatch
+from sandro_slam.variance_components import reweighted
 
 MapFunction = Callable[[Callable, list[tuple]], list]  # (function, argument tuples) -> results, in order
 
@@ -109,11 +110,12 @@ def _optimize(
     """Optimise the merged graph with the robust back end (setting each loop's weight); a session whose
     inter-session loops the back end rejects until it is no longer joined to the first is refused (taken out of
     `T_merged`, its reason added to `refused`) and the graph optimised again. Returns `build_graph`'s graph (with
-    `graph.loop_submap_noise`: its loops widened, as the estimate weighs them once they are decided), known inliers
-    and loop factors, with the optimised values."""
+    `graph.loop_submap_noise`: its loops widened, as the estimate weighs them once they are decided; with
+    `merge.variance_components` each group of factors scaled by its variance factor), known inliers and loop
+    factors, with the optimised values."""
     min_loops = config.merge.min_loops
     while True:
-        graph, values, known, loop_factors = build_graph(sessions, T_merged, loops, config.graph.prior_sigma)
+        graph, values, known, loop_factors, groups = build_graph(sessions, T_merged, loops, config.graph.prior_sigma)
         estimate, weights = (
             robust_optimize(graph, values, known, config.graph)
             if loop_factors
@@ -129,6 +131,9 @@ def _optimize(
         kept = spanning_transforms(sessions, dict.fromkeys(accepted_pairs(loops, min_loops)), reachable_only=True)
         dropped = [index for index in T_merged if index not in kept]
         if not dropped:
+            reference = factor_group("odometry", 0)
+            if config.merge.variance_components and reference in groups:
+                graph, estimate, _ = reweighted(graph, estimate, weights, groups, reference)
             return graph, estimate, known, loop_factors
         for index in dropped:
             n = sum(1 for lp in loops if index in (lp.target_session, lp.source_session) and lp.weight >= 0.5)

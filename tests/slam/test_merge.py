@@ -126,7 +126,7 @@ def test_the_merged_graph_widens_every_loop_by_the_odometry_across_its_keyframes
     sessions = [session("a", 0.1), session("b", 0.2)]
     inter = InterSessionLoop(0, 2, 1, 1, np.eye(4), np.eye(6) * 1e-4, 50, 0.9, "guided", voted=True)
     T_merged = {0: np.eye(4), 1: np.eye(4)}
-    plain, _, known, loop_factors = build_graph(sessions, T_merged, [inter], 1e-3)
+    plain, _, known, loop_factors, _ = build_graph(sessions, T_merged, [inter], 1e-3)
     widened = build_graph(sessions, T_merged, [inter], 1e-3, loop_submap_noise=True)[0]
     assert widened.size() == plain.size() and loop_factors[0][1] == plain.size() - 1
 
