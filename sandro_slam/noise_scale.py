@@ -14,8 +14,8 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from sandro_slam.covariance import FactorCovariances
 from sandro_slam.factors import scaled_noise
+from sandro_slam.variance_components import fits
 
 MIN_LOOPS = 10  # kept loops needed to estimate the scale
 MAX_ITERATIONS = 30
@@ -39,13 +39,12 @@ def rescale_odometry(
         scaled = gtsam.NonlinearFactorGraph()
         for i in others + loops:
             scaled.add(graph.at(i))
-        first_odometry = scaled.size()
         for i in odometry:
             scaled.add(scaled_noise(graph.at(i), scale))
         values = _optimized(scaled, values)
-        covariances = FactorCovariances(scaled, values)
-        loop_fit = _variance_factor(scaled, values, covariances, range(len(others), first_odometry))
-        odometry_fit = _variance_factor(scaled, values, covariances, range(first_odometry, scaled.size()))
+        groups = [None] * len(others) + ["loops"] * len(loops) + ["odometry"] * len(odometry)
+        fit = fits(scaled, values, groups)
+        loop_fit, odometry_fit = (fit[g][0] / max(fit[g][1], 1e-12) for g in ("loops", "odometry"))
         # The odometry's factor moves by the ratio squared: the plain ratio approaches it only slowly when the
         # model is far off.
         target = float(np.clip(scale * (odometry_fit / loop_fit) ** 2, MIN_SCALE, 1.0))
@@ -54,20 +53,6 @@ def rescale_odometry(
             break
         scale = target
     return values, scale
-
-
-def _variance_factor(
-    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, covariances: FactorCovariances, indices: range
-) -> float:
-    """Squared whitened residuals of the factors at `indices` over their redundancy: sum of dim - tr(A S A^T), A the
-    whitened Jacobian of a factor and S the joint covariance of its variables (`covariances.projected`, of `graph`
-    at `values`)."""
-    squared, redundancy = 0.0, 0.0
-    for i in indices:
-        factor = graph.at(i)
-        redundancy += factor.dim() - float(np.trace(covariances.projected(factor, values)[1]))
-        squared += 2.0 * factor.error(values)
-    return squared / max(redundancy, 1e-12)
 
 
 def _optimized(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> gtsam.Values:

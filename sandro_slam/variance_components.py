@@ -55,6 +55,21 @@ def reweighted(
     return _scaled(graph, groups, every, np.arange(graph.size())), values, scales
 
 
+def fits(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, groups: Sequence[Hashable | None]
+) -> dict[Hashable, tuple[float, float]]:
+    """Per group of `graph`'s factors (`groups[i]`: factor i's, None: not counted), at `values` (a solution of
+    `graph`): the sum of their squared whitened errors and their redundancy, the sum of dim - tr(A Sigma A^T)."""
+    covariances = FactorCovariances(graph, values)
+    out: dict[Hashable, tuple[float, float]] = {}
+    for index, group in enumerate(groups):
+        if group is not None:
+            b, M = covariances.projected(graph.at(index), values)
+            squares, redundancy = out.get(group, (0.0, 0.0))
+            out[group] = (squares + float(b @ b), redundancy + len(b) - float(np.trace(M)))
+    return out
+
+
 def _estimated(
     scaled: gtsam.NonlinearFactorGraph,
     groups: Sequence[Hashable | None],
@@ -64,15 +79,11 @@ def _estimated(
 ) -> dict[Hashable, float]:
     """The groups' factors, relative to `reference`'s, from the residuals at `values` of the graph scaled by
     `scales` (`scaled`)."""
-    covariances = FactorCovariances(scaled, values)
-    squares = dict.fromkeys(scales, 0.0)
-    redundancy = dict.fromkeys(scales, 0.0)
-    for index, group in enumerate(groups):
-        if group is not None:
-            b, M = covariances.projected(scaled.at(index), values)
-            squares[group] += float(b @ b)
-            redundancy[group] += len(b) - float(np.trace(M))
-    seen = {g: scales[g] * squares[g] / redundancy[g] for g in scales if redundancy[g] >= MIN_REDUNDANCY}
+    seen = {
+        g: scales[g] * squares / redundancy
+        for g, (squares, redundancy) in fits(scaled, values, groups).items()
+        if redundancy >= MIN_REDUNDANCY
+    }
     fallback = float(np.median(list(seen.values()))) if seen else 1.0
     factors = {g: seen.get(g, fallback) for g in scales}
     return {g: factor / factors[reference] for g, factor in factors.items()}

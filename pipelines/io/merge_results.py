@@ -69,6 +69,7 @@ def merge_summary(result: MergeResult) -> dict:
         "inter_session_loops_verified": len(result.loops),
         "inter_session_loops_in_graph": len(used),
         "inter_session_loops_accepted": sum(lp.weight >= 0.5 for lp in used),
+        "variance_factors": {group: round(factor, 4) for group, factor in result.variance_factors.items()},
         "timings_s": result.timings,
         "loops": loops,
     }

@@ -33,6 +33,9 @@ class MergeResult:
     graph: gtsam.NonlinearFactorGraph  # the merged graph (keys: session_key), its loops as the estimate weighs them
     values: gtsam.Values  # its optimised values
     timings: dict[str, float] = field(default_factory=dict)  # seconds
+    # `merge.variance_components`: the variance factor of each group of factors ("<session>: odometry",
+    # "<session>: loops", "inter-session loops"), relative to the first session's odometry; empty without it
+    variance_factors: dict[str, float] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -110,6 +113,12 @@ def build_graph(
                 )
             )
     return graph, values, known, loop_factors, groups
+
+
+def group_name(group: tuple[str, int], sessions: list[Session]) -> str:
+    """A readable name of a factor group: "<session>: odometry", "<session>: loops" or "inter-session loops"."""
+    what, index = group
+    return what if group == INTER_SESSION else f"{sessions[index].name}: {what}"
 
 
 def factor_group(kind: str, session_index: int) -> tuple[str, int]:

@@ -12,7 +12,14 @@ from sandro_slam.config import MergeConfig, SlamConfig
 from sandro_slam.loop_registration import MIN_SUBMAP_POINTS, describe_submap
 from sandro_slam.merge.descriptor import place_candidates
 from sandro_slam.merge.free_space import FreeSpace, pair_conflict
-from sandro_slam.merge.graph import MergeResult, accepted_pairs, build_graph, factor_group, merge_result
+from sandro_slam.merge.graph import (
+    MergeResult,
+    accepted_pairs,
+    build_graph,
+    factor_group,
+    group_name,
+    merge_result,
+)
 from sandro_slam.merge.loops import Descriptions, InterSessionLoop, register_pairs
 from sandro_slam.merge.voting import fits, spanning_transforms, vote
 from sandro_slam.robust_backend import refined, robust_optimize
@@ -93,10 +100,11 @@ def merge_sessions(
         if merge.guided_radius > 0 and len(T_merged) > 1:
             loops += _guided_loops(sessions, T_merged, descriptions, tried, config, map_function)
     with stopwatch("optimization"):
-        graph, estimate, known, loop_factors = _optimize(sessions, T_merged, loops, refused, config)
+        graph, estimate, known, loop_factors, factors = _optimize(sessions, T_merged, loops, refused, config)
     with stopwatch("marginals"):
         result = merge_result(sessions, T_merged, refused, loops, graph, estimate, known, loop_factors)
     result.timings = {**stopwatch.seconds, "total": time.perf_counter() - start}
+    result.variance_factors = {group_name(group, sessions): factor for group, factor in factors.items()}
     return result
 
 
@@ -112,7 +120,7 @@ def _optimize(
     `T_merged`, its reason added to `refused`) and the graph optimised again. Returns `build_graph`'s graph (with
     `graph.loop_submap_noise`: its loops widened, as the estimate weighs them once they are decided; with
     `merge.variance_components` each group of factors scaled by its variance factor), known inliers and loop
-    factors, with the optimised values."""
+    factors, with the optimised values, and the variance factor of each group (empty without)."""
     min_loops = config.merge.min_loops
     while True:
         graph, values, known, loop_factors, groups = build_graph(sessions, T_merged, loops, config.graph.prior_sigma)
@@ -131,10 +139,10 @@ def _optimize(
         kept = spanning_transforms(sessions, dict.fromkeys(accepted_pairs(loops, min_loops)), reachable_only=True)
         dropped = [index for index in T_merged if index not in kept]
         if not dropped:
-            reference = factor_group("odometry", 0)
+            reference, factors = factor_group("odometry", 0), {}
             if config.merge.variance_components and reference in groups:
-                graph, estimate, _ = reweighted(graph, estimate, weights, groups, reference)
-            return graph, estimate, known, loop_factors
+                graph, estimate, factors = reweighted(graph, estimate, weights, groups, reference)
+            return graph, estimate, known, loop_factors, factors
         for index in dropped:
             n = sum(1 for lp in loops if index in (lp.target_session, lp.source_session) and lp.weight >= 0.5)
             refused[sessions[index].name] = (

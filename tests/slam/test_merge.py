@@ -12,7 +12,7 @@ from sandro_core.geometry import rotation_angle
 from sandro_slam import Session, SlamConfig, merge_sessions
 from sandro_slam.factors import odometry_covariance
 from sandro_slam.merge.free_space import free_space_conflict, free_voxels
-from sandro_slam.merge.graph import build_graph
+from sandro_slam.merge.graph import INTER_SESSION, build_graph
 from sandro_slam.merge.loops import InterSessionLoop
 from sandro_slam.session import SessionEdge
 
@@ -76,6 +76,8 @@ def test_two_overlapping_sessions_merge(overlapping):
     assert len(conflicts) >= 3 and np.median(conflicts) < SlamConfig().merge.max_free_space_conflict / 2
     assert result.covariance["b"].shape == (6, 6) and np.all(np.linalg.eigvalsh(result.covariance["b"]) > 0)
     assert result.frame_poses["b"].shape == (10, 4, 4)
+    assert set(result.variance_factors) == {"a: odometry", "b: odometry", "inter-session loops"}
+    assert result.variance_factors["a: odometry"] == 1.0
     json.dumps(merge_summary(result))  # plain Python types only (guided loops once carried numpy booleans)
 
 
@@ -126,9 +128,13 @@ def test_the_merged_graph_widens_every_loop_by_the_odometry_across_its_keyframes
     sessions = [session("a", 0.1), session("b", 0.2)]
     inter = InterSessionLoop(0, 2, 1, 1, np.eye(4), np.eye(6) * 1e-4, 50, 0.9, "guided", voted=True)
     T_merged = {0: np.eye(4), 1: np.eye(4)}
-    plain, _, known, loop_factors, _ = build_graph(sessions, T_merged, [inter], 1e-3)
+    plain, _, known, loop_factors, groups = build_graph(sessions, T_merged, [inter], 1e-3)
     widened = build_graph(sessions, T_merged, [inter], 1e-3, loop_submap_noise=True)[0]
     assert widened.size() == plain.size() and loop_factors[0][1] == plain.size() - 1
+    odometry, loops = ("odometry", 0), ("loops", 0)
+    odometry_b, loops_b = ("odometry", 1), ("loops", 1)
+    # The variance components' groups, in the sessions' edge order; the prior is in none.
+    assert groups == [None, odometry, odometry, loops, odometry_b, odometry_b, loops_b, INTER_SESSION]
 
     def variances(graph, index: int) -> np.ndarray:
         return np.diag(graph.at(index).noiseModel().covariance())
