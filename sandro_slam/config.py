@@ -190,9 +190,8 @@ class MergeConfig(StrictModel):
     map_voxel: float | None = scaled(0.5, "voxel [m] of the merged map sandro-merge writes")
     variance_components: bool = Field(
         True,
-        description="once the loops are decided, scale each session's odometry and loops and the inter-session "
-        "loops by the variance factor their residuals show, relative to the first session's odometry "
-        "(docs/merge.md)",
+        description="once the loops are decided, scale each session's factors and the inter-session loops by the "
+        "variance factor their residuals show, relative to the first session's (docs/merge.md)",
     )
 
 

@@ -33,8 +33,8 @@ class MergeResult:
     graph: gtsam.NonlinearFactorGraph  # the merged graph (keys: session_key), its loops as the estimate weighs them
     values: gtsam.Values  # its optimised values
     timings: dict[str, float] = field(default_factory=dict)  # seconds
-    # `merge.variance_components`: the variance factor of each group of factors ("<session>: odometry",
-    # "<session>: loops", "inter-session loops"), relative to the first session's odometry; empty without it
+    # `merge.variance_components`: the variance factor of each session's factors (by its name) and of the
+    # inter-session loops ("inter-session loops"), relative to the first session's; empty without it
     variance_factors: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -43,7 +43,7 @@ class MergeResult:
         return not self.refused
 
 
-INTER_SESSION = ("inter-session loops", -1)  # the group of every inter-session loop
+INTER_SESSION = -1  # the variance components' group of every inter-session loop; a session's factors: its index
 
 
 def session_key(session_index: int, key: int) -> int:
@@ -59,8 +59,8 @@ def build_graph(
     loop_submap_noise: bool = False,
 ):
     """The merged graph over the joined sessions: (graph, initial values, known inlier factor indices,
-    [(loop, factor index)] of the inter-session loops, each factor's group: `factor_group`, `INTER_SESSION` or
-    None for the prior). With `loop_submap_noise` the same factors at the same indices, but each loop, the
+    [(loop, factor index)] of the inter-session loops, each factor's group: its session's index, `INTER_SESSION`
+    or None for the prior). With `loop_submap_noise` the same factors at the same indices, but each loop, the
     sessions' and the inter-session ones, with its covariance plus the odometry covariance across each of its two
     keyframes (`factors.widened_loop_covariance`, as `PoseGraph` weighs them)."""
     graph, values, known, groups = gtsam.NonlinearFactorGraph(), gtsam.Values(), [], []
@@ -93,7 +93,7 @@ def build_graph(
                     else covariance(edge.covariance, (index, edge.target), (index, edge.source))
                 )
                 target, source = session_key(index, edge.target), session_key(index, edge.source)
-                groups.append(factor_group(edge.kind, index))
+                groups.append(index)
                 graph.add(between_factor(target, source, edge.T_target_source, edge_covariance))
     loop_factors = []
     for loop in loops:
@@ -115,16 +115,9 @@ def build_graph(
     return graph, values, known, loop_factors, groups
 
 
-def group_name(group: tuple[str, int], sessions: list[Session]) -> str:
-    """A readable name of a factor group: "<session>: odometry", "<session>: loops" or "inter-session loops"."""
-    what, index = group
-    return what if group == INTER_SESSION else f"{sessions[index].name}: {what}"
-
-
-def factor_group(kind: str, session_index: int) -> tuple[str, int]:
-    """The group of a session's factor whose noise the merge estimates (`variance_components`): the session's
-    odometry or its loops (`kind`: "odometry" or a loop's)."""
-    return ("odometry" if kind == "odometry" else "loops", session_index)
+def group_name(group: int, sessions: list[Session]) -> str:
+    """A readable name of a factor group: its session's name, or "inter-session loops"."""
+    return "inter-session loops" if group == INTER_SESSION else sessions[group].name
 
 
 def accepted_pairs(loops: list[InterSessionLoop], min_loops: int) -> list[tuple[int, int]]:

@@ -16,7 +16,6 @@ from sandro_slam.merge.graph import (
     MergeResult,
     accepted_pairs,
     build_graph,
-    factor_group,
     group_name,
     merge_result,
 )
@@ -139,9 +138,9 @@ def _optimize(
         kept = spanning_transforms(sessions, dict.fromkeys(accepted_pairs(loops, min_loops)), reachable_only=True)
         dropped = [index for index in T_merged if index not in kept]
         if not dropped:
-            reference, factors = factor_group("odometry", 0), {}
-            if config.merge.variance_components and reference in groups:
-                graph, estimate, factors = reweighted(graph, estimate, weights, groups, reference)
+            factors = {}
+            if config.merge.variance_components and 0 in groups:  # relative to the first session's factors
+                graph, estimate, factors = reweighted(graph, estimate, weights, groups, 0)
             return graph, estimate, known, loop_factors, factors
         for index in dropped:
             n = sum(1 for lp in loops if index in (lp.target_session, lp.source_session) and lp.weight >= 0.5)
