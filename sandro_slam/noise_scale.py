@@ -15,7 +15,7 @@ import gtsam
 import numpy as np
 
 from sandro_slam.factors import scaled_noise
-from sandro_slam.variance_components import fits
+from sandro_slam.variance_components import group_fits
 
 MIN_LOOPS = 10  # kept loops needed to estimate the scale
 MAX_ITERATIONS = 30
@@ -43,7 +43,7 @@ def rescale_odometry(
             scaled.add(scaled_noise(graph.at(i), scale))
         values = _optimized(scaled, values)
         groups = [None] * len(others) + ["loops"] * len(loops) + ["odometry"] * len(odometry)
-        fit = fits(scaled, values, groups)
+        fit = group_fits(scaled, values, groups)
         loop_fit, odometry_fit = (fit[g][0] / max(fit[g][1], 1e-12) for g in ("loops", "odometry"))
         # The odometry's factor moves by the ratio squared: the plain ratio approaches it only slowly when the
         # model is far off.

@@ -55,7 +55,7 @@ def reweighted(
     return _scaled(graph, groups, every, np.arange(graph.size())), values, scales
 
 
-def fits(
+def group_fits(
     graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, groups: Sequence[Hashable | None]
 ) -> dict[Hashable, tuple[float, float]]:
     """Per group of `graph`'s factors (`groups[i]`: factor i's, None: not counted), at `values` (a solution of
@@ -81,7 +81,7 @@ def _estimated(
     `scales` (`scaled`)."""
     seen = {
         g: scales[g] * squares / redundancy
-        for g, (squares, redundancy) in fits(scaled, values, groups).items()
+        for g, (squares, redundancy) in group_fits(scaled, values, groups).items()
         if redundancy >= MIN_REDUNDANCY
     }
     fallback = float(np.median(list(seen.values()))) if seen else 1.0

@@ -12,13 +12,7 @@ from sandro_slam.config import MergeConfig, SlamConfig
 from sandro_slam.loop_registration import MIN_SUBMAP_POINTS, describe_submap
 from sandro_slam.merge.descriptor import place_candidates
 from sandro_slam.merge.free_space import FreeSpace, pair_conflict
-from sandro_slam.merge.graph import (
-    MergeResult,
-    accepted_pairs,
-    build_graph,
-    group_name,
-    merge_result,
-)
+from sandro_slam.merge.graph import MergeResult, accepted_pairs, build_graph, group_name, merge_result
 from sandro_slam.merge.loops import Descriptions, InterSessionLoop, register_pairs
 from sandro_slam.merge.voting import fits, spanning_transforms, vote
 from sandro_slam.robust_backend import refined, robust_optimize
