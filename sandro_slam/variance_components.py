@@ -44,11 +44,14 @@ def reweighted(
     scales = {groups[i]: 1.0 for i in kept if groups[i] is not None}
     if reference not in scales:
         raise ValueError(f"the reference group {reference!r} has no kept factor")
+    kept_groups = [groups[i] for i in kept]
+    scaled = _scaled(graph, groups, scales, kept)
     for _ in range(MAX_ROUNDS):
-        factors = _estimated(_scaled(graph, groups, scales, kept), [groups[i] for i in kept], scales, values, reference)
+        factors = _estimated(scaled, kept_groups, scales, values, reference)
         settled = all(abs(factors[g] / scales[g] - 1.0) <= SETTLED for g in scales)
         scales = factors
-        values = refined(_scaled(graph, groups, scales, kept), values, np.ones(len(kept)))
+        scaled = _scaled(graph, groups, scales, kept)
+        values = refined(scaled, values, np.ones(len(kept)))
         if settled:
             break
     every = {g: scales.get(g, 1.0) for g in groups if g is not None}

@@ -34,6 +34,7 @@ Metrics of `two` and `three`, per session S after the first (A):
         verified inter-session loop against the true relative pose of its keyframes (wrong: more than 2 deg or
         0.5 m off, as in the suite; the median is of all of them, where the suite's is of the real ones), the
         wrong ones kept in the merged graph, the real ones left out of it.
+    variance_factors: each session's and the inter-session loops' (`MergeResult.variance_factors`).
     ate_single_S, ate_merged_S, ate_ratio_S: ATE of S's own run; ATE in the merged frame (one SE3 alignment
         of all merged trajectories together); their ratio. ate_merged_over_perfect_S: ate_merged_S over
         perfect_ate_merged_S (every session, A too). merge_seconds: merge_sessions alone;
@@ -214,6 +215,7 @@ def _accuracy(sessions, result) -> dict:
         "ok": result.ok,
         "refused": result.refused,
         "merge_seconds": result.timings.get("total"),
+        "variance_factors": result.variance_factors,
         "timings_s": result.timings,
         "inter_session_loops_verified": len(result.loops),
         "inter_session_loops_accepted": int(sum(lp.weight >= 0.5 for lp in result.loops)),
